@@ -1,0 +1,128 @@
+"""A posed image collection in one shape, whatever format it came from.
+
+Readers (``nerfbake.data.formats``) return a :class:`Dataset` whose cameras are already in the OpenGL
+convention, normalised, and scaled to the requested downscale. Pixels are read only when asked for.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+import numpy as np
+
+from nerfbake.data.cameras import Camera
+from nerfbake.data.errors import DatasetError
+from nerfbake.data.images import load_image_uint8, to_float
+from nerfbake.data.normalization import Normalization
+
+WHITE = (1.0, 1.0, 1.0)
+
+
+@dataclass
+class Frame:
+    """One image: where its pixels are, and its camera at the loaded scale."""
+
+    name: str
+    image_path: Path
+    camera: Camera
+    # Set when the stored image is larger than the camera (downscale on load), else None.
+    load_size: tuple[int, int] | None = None
+
+
+@dataclass
+class Dataset:
+    format: str
+    root: Path
+    frames: list[Frame]
+    splits: dict[str, list[int]]
+    normalization: Normalization = field(default_factory=Normalization)
+    bounds: tuple[float, float] | None = None
+    background: tuple[float, float, float] | None = None  # composite RGBA over this; None = images are opaque
+    downscale: float = 1.0
+    extras: dict = field(default_factory=dict)  # format-specific facts worth reporting (aabb_scale, ...)
+
+    def __post_init__(self) -> None:
+        if not self.frames:
+            raise DatasetError(f"{self.root}: the dataset has no images with poses")
+        for split, idx in self.splits.items():
+            bad = [i for i in idx if not 0 <= i < len(self.frames)]
+            if bad:
+                raise DatasetError(f"{self.root}: split {split!r} refers to missing frames {bad[:5]}")
+
+    def __len__(self) -> int:
+        return len(self.frames)
+
+    def split(self, name: str) -> list[int]:
+        if name not in self.splits:
+            raise DatasetError(f"{self.root}: no split {name!r}; this dataset has {', '.join(self.splits)}")
+        return self.splits[name]
+
+    def cameras(self, split: str | None = None) -> list[Camera]:
+        idx = range(len(self.frames)) if split is None else self.split(split)
+        return [self.frames[i].camera for i in idx]
+
+    def image(self, index: int, keep_alpha: bool = False) -> np.ndarray:
+        """Float32 (H, W, 3) image of frame ``index`` in [0, 1], RGBA composited on the background.
+
+        With ``keep_alpha`` an RGBA source also returns its alpha as a 4th channel (for masks)."""
+        frame = self.frames[index]
+        arr = load_image_uint8(frame.image_path, frame.load_size)
+        cam = frame.camera
+        if arr.shape[0] != cam.height or arr.shape[1] != cam.width:
+            raise DatasetError(
+                f"{frame.image_path}: image is {arr.shape[1]}x{arr.shape[0]} but its camera says {cam.width}x{cam.height}; "
+                "fix the intrinsics (w/h) or pass the matching --downscale"
+            )
+        return to_float(arr, self.background, keep_alpha)
+
+    def info(self) -> dict:
+        """The summary printed by ``nerfbake data info``."""
+        cam = self.frames[0].camera
+        return {
+            "format": self.format,
+            "root": str(self.root),
+            "splits": {k: len(v) for k, v in self.splits.items()},
+            "num_images": len(self.frames),
+            "width": cam.width,
+            "height": cam.height,
+            "fx": cam.fx,
+            "fy": cam.fy,
+            "cx": cam.cx,
+            "cy": cam.cy,
+            "camera_model": cam.model,
+            "distortion": {k: v for k, v in cam.distortion.items() if v},
+            "downscale": self.downscale,
+            "bounds": None if self.bounds is None else [float(b) for b in self.bounds],
+            "normalization": self.normalization.to_json(),
+            "background": None if self.background is None else list(self.background),
+            **({"extras": self.extras} if self.extras else {}),
+        }
+
+
+def every_nth_split(names: list[str], every: int = 8) -> dict[str, list[int]]:
+    """The LLFF/mip-NeRF 360 protocol: sort by name, hold out every ``every``-th image for testing."""
+    order = sorted(range(len(names)), key=lambda i: names[i])
+    test = sorted(order[k] for k in range(0, len(order), every))
+    held = set(test)
+    return {"train": [i for i in range(len(names)) if i not in held], "test": test}
+
+
+def finish_frames(
+    frames: list[Frame], normalization: Normalization, downscale: float, native_sizes: bool = True
+) -> list[Frame]:
+    """Apply normalisation and downscale to every frame's camera (``load_size`` records the decode size)."""
+    out = []
+    for f in frames:
+        cam = replace(f.camera, c2w=normalization.apply_to_pose(f.camera.c2w))
+        load_size = None
+        if downscale != 1:
+            cam = cam.scaled(downscale)
+            load_size = (cam.width, cam.height)
+        out.append(replace(f, camera=cam, load_size=load_size if native_sizes else f.load_size))
+    return out
+
+
+def check_downscale(downscale: float, source: Path) -> float:
+    if not np.isfinite(downscale) or downscale < 1:
+        raise DatasetError(f"{source}: --downscale must be a number >= 1, got {downscale}")
+    return float(downscale)

@@ -1,0 +1,53 @@
+"""Dataset readers and format auto-detection: Blender, LLFF, COLMAP, instant-ngp/nerfstudio transforms.json."""
+from __future__ import annotations
+
+from pathlib import Path
+
+from nerfbake.data.dataset import Dataset
+from nerfbake.data.errors import DatasetError
+
+FORMATS = ("blender", "llff", "colmap", "transforms")
+
+
+def detect_format(root: Path) -> str:
+    """Name the format of the dataset at ``root`` from the files it contains."""
+    root = Path(root)
+    if not root.exists():
+        raise DatasetError(f"{root}: no such dataset directory")
+    if root.is_file():
+        if root.name == "transforms.json":
+            return "transforms"
+        raise DatasetError(f"{root}: pass the dataset directory, not a file")
+    if (root / "transforms_train.json").is_file():
+        return "blender"
+    if (root / "transforms.json").is_file():
+        return "transforms"
+    if (root / "poses_bounds.npy").is_file():
+        return "llff"
+    from nerfbake.data.formats.colmap import find_sparse_dir
+
+    if find_sparse_dir(root) is not None:
+        return "colmap"
+    raise DatasetError(
+        f"{root}: no dataset found; expected transforms_train.json (Blender), transforms.json (instant-ngp/nerfstudio), "
+        "poses_bounds.npy (LLFF) or sparse/0/{cameras,images}.{bin,txt} (COLMAP)"
+    )
+
+
+def load_dataset(root: str | Path, format: str | None = None, downscale: float = 1.0, **options) -> Dataset:
+    """Read any supported dataset; ``format`` None auto-detects. Options are passed to the format's reader."""
+    root = Path(root)
+    fmt = format or detect_format(root)
+    if fmt == "blender":
+        from nerfbake.data.formats.blender import read_blender as reader
+    elif fmt == "llff":
+        from nerfbake.data.formats.llff import read_llff as reader
+    elif fmt == "colmap":
+        from nerfbake.data.formats.colmap import read_colmap as reader
+    elif fmt == "transforms":
+        from nerfbake.data.formats.transforms import read_transforms as reader
+    else:
+        raise DatasetError(f"{root}: unknown dataset format {fmt!r}; choose one of {', '.join(FORMATS)}")
+    if root.is_file():
+        root = root.parent
+    return reader(root, downscale=downscale, **options)

@@ -1,0 +1,95 @@
+"""Scene normalisation: a similarity transform recorded with the dataset so outputs map back to the input frame.
+
+``p_normalized = scale * (R @ p + t)`` with ``transform = [[R, t], [0, 1]]`` (R a rotation). Poses are
+transformed as c2w' = [[R·R_c, scale·(R·o + t)]]; depths and bounds multiply by ``scale``.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class Normalization:
+    transform: np.ndarray = field(default_factory=lambda: np.eye(4))
+    scale: float = 1.0
+    method: str = "none"
+
+    def apply_to_pose(self, c2w: np.ndarray) -> np.ndarray:
+        out = self.transform @ c2w
+        out[:3, 3] *= self.scale
+        return out
+
+    def apply_to_points(self, points: np.ndarray) -> np.ndarray:
+        return self.scale * (points @ self.transform[:3, :3].T + self.transform[:3, 3])
+
+    def invert_points(self, points: np.ndarray) -> np.ndarray:
+        return (points / self.scale - self.transform[:3, 3]) @ self.transform[:3, :3]
+
+    def to_json(self) -> dict:
+        return {"method": self.method, "transform": self.transform.tolist(), "scale": float(self.scale)}
+
+
+def average_pose(c2ws: np.ndarray) -> np.ndarray:
+    """LLFF's mean pose: mean centre, mean viewing axis (+Z back) and mean up, orthonormalised."""
+    center = c2ws[:, :3, 3].mean(0)
+    back = _unit(c2ws[:, :3, 2].sum(0))
+    up = c2ws[:, :3, 1].sum(0)
+    right = _unit(np.cross(up, back))
+    up = np.cross(back, right)
+    out = np.eye(4)
+    out[:3, :3] = np.stack([right, up, back], axis=1)
+    out[:3, 3] = center
+    return out
+
+
+def _unit(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v)
+
+
+def forward_facing(c2ws: np.ndarray, near: float, bd_factor: float = 0.75) -> Normalization:
+    """NeRF's LLFF recentring: the average pose becomes the identity and the nearest bound 1/bd_factor."""
+    return Normalization(np.linalg.inv(average_pose(c2ws)), 1.0 / (near * bd_factor), "forward-facing")
+
+
+def focus_point(c2ws: np.ndarray) -> np.ndarray:
+    """Least-squares point nearest to every camera's optical axis (where inward-facing captures look)."""
+    dirs = -c2ws[:, :3, 2]
+    origins = c2ws[:, :3, 3]
+    eye = np.eye(3)[None]
+    proj = eye - dirs[:, :, None] * dirs[:, None, :]
+    a = proj.sum(0)
+    b = (proj @ origins[:, :, None]).sum(0)[:, 0]
+    return np.linalg.lstsq(a, b, rcond=None)[0]
+
+
+def object_centric(c2ws: np.ndarray) -> Normalization:
+    """360° re-centring: mean camera up becomes +Z, the cameras' focus point the origin, cameras inside [-1, 1]^3.
+
+    The focus point falls back to the mean camera centre when the cameras do not look at a common point
+    (e.g. walking through rooms), which keeps every camera inside the cube either way.
+    """
+    up = _unit(c2ws[:, :3, 1].sum(0))
+    rot = _rotation_between(up, np.array([0.0, 0.0, 1.0]))
+    centers = c2ws[:, :3, 3]
+    center = focus_point(c2ws) if len(c2ws) >= 2 else centers.mean(0)
+    spread = np.abs(centers - centers.mean(0)).max() + 1e-9
+    if not np.isfinite(center).all() or np.abs(center - centers.mean(0)).max() > 2 * spread:
+        center = centers.mean(0)
+    transform = np.eye(4)
+    transform[:3, :3] = rot
+    transform[:3, 3] = -rot @ center
+    extent = np.abs((centers - center) @ rot.T).max()
+    return Normalization(transform, 1.0 / max(extent, 1e-9), "object-centric")
+
+
+def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Rotation taking unit vector a to unit vector b (Rodrigues)."""
+    v = np.cross(a, b)
+    c = float(np.dot(a, b))
+    if c < -1 + 1e-9:  # opposite: rotate pi about any axis orthogonal to a
+        axis = _unit(np.cross(a, [1.0, 0, 0] if abs(a[0]) < 0.9 else [0, 1.0, 0]))
+        return 2 * np.outer(axis, axis) - np.eye(3)
+    k = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
+    return np.eye(3) + k + k @ k / (1 + c)
