@@ -2,7 +2,9 @@
 
 Points with inf-norm <= 1 are unchanged; outside, the coordinate that attains the inf-norm maps to
 sign(x)(2 - 1/|x|) and the others are divided by the inf-norm, so the whole space lands in [-2, 2]^3
-while straight lines stay straight inside each octant's pyramid (what makes ray marching exact).
+while straight lines stay straight inside each of the six pyramids x_j = ||x||_inf (what makes ray
+marching exact). It is continuous across the unit cube's surface and inside each pyramid; across the
+pyramids' shared edges (|x_i| = |x_j| > 1) it jumps, as the paper's definition implies.
 SMERF applies it per submodel after scaling coordinates by the submodel scale factor.
 """
 from __future__ import annotations

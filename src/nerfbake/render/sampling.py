@@ -55,9 +55,8 @@ def sample_pdf(
         u = torch.rand(shape, generator=generator, device=t.device, dtype=t.dtype)
         u, _ = torch.sort(u, dim=-1)
     u = u.contiguous()
-    idx = torch.searchsorted(cdf.contiguous(), u, right=True)
-    below = (idx - 1).clamp(0, cdf.shape[-1] - 1)
-    above = idx.clamp(0, cdf.shape[-1] - 1)
+    idx = torch.searchsorted(cdf.contiguous(), u, right=True).clamp(1, cdf.shape[-1] - 1)
+    below, above = idx - 1, idx
     cdf_lo, cdf_hi = cdf.gather(-1, below), cdf.gather(-1, above)
     t_lo, t_hi = t.gather(-1, below), t.gather(-1, above)
     denom = torch.where(cdf_hi - cdf_lo < 1e-12, torch.ones_like(cdf_hi), cdf_hi - cdf_lo)

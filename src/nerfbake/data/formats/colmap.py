@@ -96,3 +96,32 @@ def read_colmap(root: Path, downscale: float = 1.0, normalize: str = "object-cen
             bounds = (float(np.percentile(d, 0.1)), float(np.percentile(d, 99.9)))
     return Dataset("colmap", root, frames, every_nth_split([f.name for f in frames]), norm, bounds=bounds,
                    background=None, downscale=downscale, extras={"sparse_dir": str(sparse)})
+
+
+def read_points3d_binary(path: Path) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """Read COLMAP ``points3D.bin`` without the rest of the model (LLFF captures ship it alone).
+
+    Returns xyz (P, 3), rgb (P, 3) uint8 and, per point, the image ids of its track.
+    """
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except FileNotFoundError:
+        raise DatasetError(f"{path}: file is missing") from None
+    try:
+        (count,) = np.frombuffer(raw, "<u8", 1, 0)
+        off = 8
+        xyz = np.empty((count, 3))
+        rgb = np.empty((count, 3), np.uint8)
+        tracks = []
+        point = np.dtype([("id", "<u8"), ("xyz", "<f8", 3), ("rgb", "u1", 3), ("err", "<f8"), ("n", "<u8")])
+        for i in range(count):
+            rec = np.frombuffer(raw, point, 1, off)[0]
+            off += point.itemsize
+            xyz[i], rgb[i] = rec["xyz"], rec["rgb"]
+            track = np.frombuffer(raw, "<i4", 2 * int(rec["n"]), off).reshape(-1, 2)
+            off += track.nbytes
+            tracks.append(track[:, 0].copy())
+    except ValueError:
+        raise DatasetError(f"{path}: truncated or not a COLMAP points3D.bin file") from None
+    return xyz, rgb, tracks

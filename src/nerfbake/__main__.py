@@ -1,0 +1,3 @@
+from nerfbake.cli import main
+import sys
+sys.exit(main())

@@ -1,0 +1,36 @@
+"""Shared fixtures: the ../shared data folder (skip with a reason when a user's clone lacks it)."""
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import pytest
+
+SHARED = Path(os.environ.get("NERFBAKE_SHARED", Path(__file__).resolve().parents[2] / "shared"))
+DATA = SHARED / "data"
+
+# Keep the downscale cache of test runs out of the user's home.
+os.environ.setdefault("NERFBAKE_CACHE", tempfile.mkdtemp(prefix="nerfbake-test-cache-"))
+
+
+def shared_data(name: str) -> Path:
+    path = DATA / name
+    if not path.exists():
+        pytest.skip(f"needs ../shared/data/{name} (present in CI, absent in a user's clone)")
+    return path
+
+
+@pytest.fixture(scope="session")
+def lego() -> Path:
+    return shared_data("lego_400")
+
+
+@pytest.fixture(scope="session")
+def fern() -> Path:
+    return shared_data("fern")
+
+
+@pytest.fixture(scope="session")
+def fox() -> Path:
+    return shared_data("fox")

@@ -1,0 +1,24 @@
+import torch
+
+from nerfbake.render import sample_pdf, stratified_t, uniform_t
+
+
+def test_stratified_sorted_and_within_bounds():
+    g = torch.Generator().manual_seed(0)
+    near, far = torch.full((100,), 2.0), torch.full((100,), 6.0)
+    t = stratified_t(near, far, 64, generator=g)
+    assert t.shape == (100, 65)
+    assert (t[:, 1:] >= t[:, :-1]).all()
+    assert (t[:, 0] == 2).all() and (t[:, -1] == 6).all()
+
+
+def test_sample_pdf_follows_the_histogram():
+    t = uniform_t(torch.tensor([0.0]), torch.tensor([4.0]), 4)  # intervals [0,1] [1,2] [2,3] [3,4]
+    w = torch.tensor([[0.0, 0.75, 0.25, 0.0]])
+    s = sample_pdf(t, w, 20000, generator=torch.Generator().manual_seed(0), eps=0.0)
+    assert (s[:, 1:] >= s[:, :-1]).all()
+    frac_12 = ((s >= 1) & (s < 2)).float().mean()
+    frac_23 = ((s >= 2) & (s <= 3)).float().mean()
+    assert abs(frac_12 - 0.75) < 0.02 and abs(frac_23 - 0.25) < 0.02
+    det = sample_pdf(t, w, 5, deterministic=True, eps=0.0)
+    assert (det >= 1).all() and (det <= 3).all()
