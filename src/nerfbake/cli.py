@@ -94,6 +94,47 @@ def cmd_demo(args) -> int:
     return 0
 
 
+def cmd_teacher_train(args) -> int:
+    from nerfbake.teacher.presets import preset
+    from nerfbake.teacher.train import config_from_dict, train_teacher
+
+    if args.config:
+        d = json.loads(Path(args.config).read_text())
+        cfg = config_from_dict(d.get("train", d))  # a run's config.json or a bare training config
+    else:
+        cfg = preset(args.field, args.preset)
+    if args.steps is not None:
+        cfg.steps = args.steps
+    if args.batch_rays is not None:
+        cfg.batch_rays = args.batch_rays
+    if args.downscale is not None:
+        cfg.downscale = args.downscale
+    cfg.seed = args.seed
+    train_teacher(args.data, args.out, cfg, resume=args.resume)
+    return 0
+
+
+def cmd_teacher_eval(args) -> int:
+    from nerfbake.teacher.evaluate import evaluate_teacher
+
+    result = evaluate_teacher(Path(args.run), args.split, args.max_views, write_images=not args.no_images)
+    if args.json:
+        _print_json(result)
+    else:
+        print(f"{result['split']}: PSNR {result['psnr']:.2f}  SSIM {result['ssim']:.4f}  "
+              f"LPIPS-{result['lpips_net']} {result['lpips_' + result['lpips_net']]:.4f}  "
+              f"({result['num_views']} views, {result['seconds_per_view']:.2f} s/view)")
+    return 0
+
+
+def cmd_teacher_render(args) -> int:
+    from nerfbake.teacher.evaluate import render_poses
+
+    written = render_poses(Path(args.run), Path(args.pose_file), Path(args.out))
+    print(f"wrote {len(written)} images to {args.out}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="nerfbake", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -124,6 +165,34 @@ def build_parser() -> argparse.ArgumentParser:
     syn.add_argument("--seed", type=int, default=0)
     syn.add_argument("--list", action="store_true", help="list the scenes")
     syn.set_defaults(func=cmd_synth)
+
+    teacher = sub.add_parser("teacher", help="train, evaluate and render teacher fields").add_subparsers(
+        dest="teacher_command", required=True)
+    tt = teacher.add_parser("train", help="train a teacher (presets: cpu-small = 2-core CPU in minutes; paper = GPU scale)")
+    tt.add_argument("--data", required=True)
+    tt.add_argument("--out", required=True)
+    tt.add_argument("--field", choices=["hash", "nerf-sh"], default="hash",
+                    help="hash: hash-grid SH field, fast (default); nerf-sh: the PlenOctrees NeRF-SH MLP")
+    tt.add_argument("--preset", choices=["cpu-small", "paper"], default="cpu-small")
+    tt.add_argument("--steps", type=int)
+    tt.add_argument("--batch-rays", type=int)
+    tt.add_argument("--downscale", type=float)
+    tt.add_argument("--seed", type=int, default=0)
+    tt.add_argument("--resume", action="store_true", help="continue from RUN/checkpoint.pt")
+    tt.add_argument("--config", help="training config JSON (e.g. another run's config.json) instead of a preset")
+    tt.set_defaults(func=cmd_teacher_train)
+    te = teacher.add_parser("eval", help="render a split and print PSNR/SSIM/LPIPS")
+    te.add_argument("--run", required=True)
+    te.add_argument("--split", default="test")
+    te.add_argument("--max-views", type=int)
+    te.add_argument("--json", action="store_true")
+    te.add_argument("--no-images", action="store_true")
+    te.set_defaults(func=cmd_teacher_eval)
+    tr = teacher.add_parser("render", help="render camera poses from a transforms-style JSON")
+    tr.add_argument("--run", required=True)
+    tr.add_argument("--pose-file", required=True)
+    tr.add_argument("--out", required=True)
+    tr.set_defaults(func=cmd_teacher_render)
 
     demo = sub.add_parser("demo", help="run the pipeline on the built-in synthetic scene (CPU preset)")
     demo.add_argument("--out", default="outputs/demo")

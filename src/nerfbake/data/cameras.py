@@ -77,14 +77,16 @@ class Camera:
         return np.stack([self.fx * xd + self.cx, self.fy * yd + self.cy], axis=-1), depth
 
 
-def _coeffs(dist: dict[str, float]) -> tuple[float, ...]:
-    return tuple(float(dist.get(k, 0.0)) for k in ("k1", "k2", "k3", "k4", "p1", "p2"))
+def _coeffs(dist: dict) -> tuple:
+    """(k1, k2, k3, k4, p1, p2) as floats, or as per-ray tensors when the dict holds tensors."""
+    return tuple(dist.get(k, 0.0) if isinstance(dist.get(k), torch.Tensor) else float(dist.get(k, 0.0))
+                 for k in ("k1", "k2", "k3", "k4", "p1", "p2"))
 
 
 def distort(x, y, dist: dict[str, float]):
     """Apply OpenCV radial-tangential distortion to normalised coordinates (works on numpy and torch)."""
     k1, k2, k3, k4, p1, p2 = _coeffs(dist)
-    if not any((k1, k2, k3, k4, p1, p2)):
+    if not any(isinstance(k, torch.Tensor) or k for k in (k1, k2, k3, k4, p1, p2)):
         return x, y
     r2 = x * x + y * y
     radial = 1 + r2 * (k1 + r2 * (k2 + r2 * (k3 + r2 * k4)))
@@ -96,7 +98,7 @@ def distort(x, y, dist: dict[str, float]):
 def undistort(xd: torch.Tensor, yd: torch.Tensor, dist: dict[str, float], iterations: int = 10):
     """Invert :func:`distort` by Newton's method (as COLMAP and nerfstudio do); torch tensors in, out."""
     k1, k2, k3, k4, p1, p2 = _coeffs(dist)
-    if not any((k1, k2, k3, k4, p1, p2)):
+    if not any(isinstance(k, torch.Tensor) or k for k in (k1, k2, k3, k4, p1, p2)):
         return xd, yd
     x, y = xd.clone(), yd.clone()
     for _ in range(iterations):

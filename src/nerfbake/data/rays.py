@@ -13,33 +13,58 @@ import torch
 from nerfbake.data.cameras import Camera, undistort
 
 
+class CameraBatch:
+    """Every camera of a set as tensors, so rays for any (camera, pixel) batch come from one vectorised formula."""
+
+    def __init__(self, cameras: list[Camera], device: torch.device | str = "cpu"):
+        self.c2w = torch.tensor(np.stack([c.c2w for c in cameras]), dtype=torch.float64, device=device)
+        self.intrinsics = torch.tensor([[c.fx, c.fy, c.cx, c.cy] for c in cameras], dtype=torch.float64, device=device)
+        self.sizes = np.array([[c.width, c.height] for c in cameras])
+        keys = ("k1", "k2", "k3", "k4", "p1", "p2")
+        dist = np.array([[c.distortion.get(k, 0.0) for k in keys] for c in cameras], dtype=np.float64)
+        self.distortion = torch.tensor(dist, device=device) if np.any(dist) else None
+
+    def __len__(self) -> int:
+        return self.c2w.shape[0]
+
+    def rays(self, cam_idx: torch.Tensor, pixels_xy: torch.Tensor) -> dict[str, torch.Tensor]:
+        """Rays through the centres of pixels (col, row) (..., 2) of cameras ``cam_idx`` (...)."""
+        shape = cam_idx.shape
+        cam_idx = cam_idx.reshape(-1)
+        pix = pixels_xy.reshape(-1, 2).to(torch.float64)
+        fx, fy, cx, cy = self.intrinsics[cam_idx].unbind(-1)
+        xd = (pix[:, 0] + 0.5 - cx) / fx
+        yd = (pix[:, 1] + 0.5 - cy) / fy
+        if self.distortion is not None:
+            d = self.distortion[cam_idx]
+            x, y = undistort(xd, yd, {k: d[:, i] for i, k in enumerate(("k1", "k2", "k3", "k4", "p1", "p2"))})
+        else:
+            x, y = xd, yd
+        dirs_cam = torch.stack([x, -y, -torch.ones_like(x)], dim=-1)  # OpenCV normalised -> OpenGL camera axes
+        norm = dirs_cam.norm(dim=-1, keepdim=True)
+        c2w = self.c2w[cam_idx]
+        dirs = torch.einsum("nij,nj->ni", c2w[:, :3, :3], dirs_cam / norm)
+        out = {
+            "origins": c2w[:, :3, 3].to(torch.float32),
+            "directions": dirs.to(torch.float32),
+            "z_scale": (1.0 / norm[:, 0]).to(torch.float32),
+            "cam_idx": cam_idx,
+        }
+        return {k: v.reshape(*shape, *v.shape[1:]) for k, v in out.items()}
+
+
+def pixel_grid(width: int, height: int) -> torch.Tensor:
+    """(H, W, 2) integer (col, row) coordinates of every pixel."""
+    rows, cols = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
+    return torch.stack([cols, rows], dim=-1)
+
+
 def camera_rays(camera: Camera, pixels_xy: torch.Tensor | None = None) -> dict[str, torch.Tensor]:
-    """Rays through pixel centres. ``pixels_xy`` (N,2) float pixel coordinates (col, row) of the pixel's corner;
-    None means every pixel, returned with shape (H, W, ...)."""
-    grid_shape = None
+    """Rays of one camera: through ``pixels_xy`` (N, 2) (col, row), or every pixel as (H, W, ...) arrays."""
     if pixels_xy is None:
-        rows, cols = torch.meshgrid(
-            torch.arange(camera.height, dtype=torch.float64), torch.arange(camera.width, dtype=torch.float64), indexing="ij"
-        )
-        pixels_xy = torch.stack([cols, rows], dim=-1).reshape(-1, 2)
-        grid_shape = (camera.height, camera.width)
-    pixels_xy = pixels_xy.to(torch.float64)
-    xd = (pixels_xy[:, 0] + 0.5 - camera.cx) / camera.fx
-    yd = (pixels_xy[:, 1] + 0.5 - camera.cy) / camera.fy
-    x, y = undistort(xd, yd, camera.distortion)
-    dirs_cam = torch.stack([x, -y, -torch.ones_like(x)], dim=-1)  # OpenCV normalised -> OpenGL camera axes
-    norm = dirs_cam.norm(dim=-1, keepdim=True)
-    c2w = torch.from_numpy(camera.c2w)
-    dirs = (dirs_cam / norm) @ c2w[:3, :3].T
-    origins = c2w[:3, 3].expand_as(dirs)
-    out = {
-        "origins": origins.to(torch.float32),
-        "directions": dirs.to(torch.float32),
-        "z_scale": (1.0 / norm[:, 0]).to(torch.float32),
-    }
-    if grid_shape is not None:
-        out = {k: v.reshape(*grid_shape, *v.shape[1:]) for k, v in out.items()}
-    return out
+        pixels_xy = pixel_grid(camera.width, camera.height)
+    cam_idx = torch.zeros(pixels_xy.shape[:-1], dtype=torch.long)
+    return CameraBatch([camera]).rays(cam_idx, pixels_xy)
 
 
 def random_pixels(

@@ -1,0 +1,54 @@
+"""NeRF-SH (PlenOctrees §4.1): NeRF's MLP predicting density and SH coefficients instead of RGB."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+
+from nerfbake.fields.encoding import PositionalEncoding
+from nerfbake.render.sh import sh_num_coeffs
+
+
+@dataclass
+class NeRFSHConfig:
+    num_freqs: int = 10
+    depth: int = 8
+    width: int = 256
+    skip: int = 4
+    sh_degree: int = 3
+
+
+class NeRFSHField(nn.Module):
+    """Positional encoding -> ``depth`` ReLU layers (input re-injected after layer ``skip``) -> sigma, SH."""
+
+    def __init__(self, cfg: NeRFSHConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.encoding = PositionalEncoding(cfg.num_freqs)
+        d_in = self.encoding.out_dim
+        layers = []
+        d = d_in
+        for i in range(cfg.depth):
+            layers.append(nn.Linear(d, cfg.width))
+            d = cfg.width + (d_in if i + 1 == cfg.skip else 0)
+        self.layers = nn.ModuleList(layers)
+        self.num_basis = sh_num_coeffs(cfg.sh_degree)
+        self.sigma_head = nn.Linear(d, 1)
+        self.sh_head = nn.Linear(d, 3 * self.num_basis)
+
+    @property
+    def sh_degree(self) -> int:
+        return self.cfg.sh_degree
+
+    def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        e = self.encoding(x)
+        h = e
+        for i, layer in enumerate(self.layers):
+            h = torch.relu(layer(h))
+            if i + 1 == self.cfg.skip:
+                h = torch.cat([h, e], dim=-1)
+        return torch.relu(self.sigma_head(h)[:, 0]), self.sh_head(h)
+
+    def density(self, x: torch.Tensor) -> torch.Tensor:
+        return self.forward(x)[0]

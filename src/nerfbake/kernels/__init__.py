@@ -1,0 +1,51 @@
+"""NVIDIA Warp kernels, one source for CPU and CUDA, behind thin torch wrappers.
+
+Warp runs a CPU launch on one thread, so :func:`parallel_launch` splits a launch over a thread pool (ctypes
+releases the GIL while a kernel runs) along an axis whose work items write disjoint memory.
+"""
+from __future__ import annotations
+
+import functools
+import os
+from concurrent.futures import ThreadPoolExecutor
+
+
+@functools.lru_cache(maxsize=1)
+def warp():
+    import warp as wp
+
+    wp.config.log_level = 30  # warnings only: no banner on every command
+    wp.init()
+    return wp
+
+
+def device_of(tensor) -> str:
+    return "cpu" if tensor.device.type == "cpu" else f"cuda:{tensor.device.index or 0}"
+
+
+@functools.lru_cache(maxsize=1)
+def _pool() -> ThreadPoolExecutor:
+    return ThreadPoolExecutor(max_workers=cpu_threads())
+
+
+def cpu_threads() -> int:
+    return max(1, int(os.environ.get("NERFBAKE_THREADS", len(os.sched_getaffinity(0)))))
+
+
+_LOADED: set = set()
+
+
+def ensure_loaded(kernel, device: str) -> None:
+    """Compile/load a kernel's module once, before threads race to do it."""
+    key = (kernel.module.name, device)
+    if key not in _LOADED:
+        warp().load_module(kernel.module, device=device)
+        _LOADED.add(key)
+
+
+def parallel_map(fn, chunks):
+    """Run ``fn(chunk)`` for every chunk on the CPU thread pool (or inline for one chunk)."""
+    chunks = list(chunks)
+    if len(chunks) <= 1:
+        return [fn(c) for c in chunks]
+    return list(_pool().map(fn, chunks))

@@ -1,0 +1,174 @@
+"""Multi-resolution hash encoding (instant-ngp) forward and backward as Warp kernels.
+
+Shapes: ``x`` (N, 3) in [0, 1]^3; ``table`` (L, T, F) features; ``resolution`` (L,) int grid size per level;
+``dense`` (L,) int, 1 where (res+1)^3 <= T so the level is indexed densely instead of hashed. Output
+(N, L*F) with F = 2 (features are ``vec2``, as in instant-ngp's default). One thread per (point, level); the backward scatters into the table with atomic adds, and
+CPU launches are split by level so that threads never write the same table rows.
+"""
+from __future__ import annotations
+
+import functools
+
+import torch
+
+from nerfbake.kernels import cpu_threads, device_of, ensure_loaded, parallel_map, warp
+
+wp = warp()
+wp.set_module_options({"enable_backward": False})  # analytic backward kernels below; no tape needed
+
+PRIME_Y = 2654435761
+PRIME_Z = 805459861
+
+
+@wp.func
+def corner_index(cx: int, cy: int, cz: int, res: int, dense: int, size: int) -> int:
+    if dense == 1:
+        return cx + (res + 1) * (cy + (res + 1) * cz)
+    h = wp.uint32(cx) ^ (wp.uint32(cy) * wp.uint32(2654435761)) ^ (wp.uint32(cz) * wp.uint32(805459861))
+    return int(h % wp.uint32(size))
+
+
+@wp.kernel
+def hash_forward(
+    x: wp.array2d(dtype=wp.float32),
+    table: wp.array2d(dtype=wp.vec2),
+    resolution: wp.array(dtype=wp.int32),
+    dense: wp.array(dtype=wp.int32),
+    level0: int,
+    out: wp.array2d(dtype=wp.vec2),
+):
+    n, j = wp.tid()
+    level = level0 + j
+    res = resolution[level]
+    size = table.shape[1]
+    px = wp.clamp(x[n, 0], 0.0, 1.0) * float(res)
+    py = wp.clamp(x[n, 1], 0.0, 1.0) * float(res)
+    pz = wp.clamp(x[n, 2], 0.0, 1.0) * float(res)
+    ix = wp.min(int(wp.floor(px)), res - 1)
+    iy = wp.min(int(wp.floor(py)), res - 1)
+    iz = wp.min(int(wp.floor(pz)), res - 1)
+    fx = px - float(ix)
+    fy = py - float(iy)
+    fz = pz - float(iz)
+    acc = wp.vec2(0.0, 0.0)
+    for c in range(8):
+        dx = c & 1
+        dy = (c >> 1) & 1
+        dz = (c >> 2) & 1
+        w = wp.where(dx == 1, fx, 1.0 - fx) * wp.where(dy == 1, fy, 1.0 - fy) * wp.where(dz == 1, fz, 1.0 - fz)
+        idx = corner_index(ix + dx, iy + dy, iz + dz, res, dense[level], size)
+        acc = acc + w * table[level, idx]
+    out[n, level] = acc
+
+
+@wp.kernel
+def hash_backward(
+    x: wp.array2d(dtype=wp.float32),
+    grad_out: wp.array2d(dtype=wp.vec2),
+    resolution: wp.array(dtype=wp.int32),
+    dense: wp.array(dtype=wp.int32),
+    level0: int,
+    grad_table: wp.array2d(dtype=wp.vec2),
+):
+    n, j = wp.tid()
+    level = level0 + j
+    res = resolution[level]
+    size = grad_table.shape[1]
+    g = grad_out[n, level]
+    px = wp.clamp(x[n, 0], 0.0, 1.0) * float(res)
+    py = wp.clamp(x[n, 1], 0.0, 1.0) * float(res)
+    pz = wp.clamp(x[n, 2], 0.0, 1.0) * float(res)
+    ix = wp.min(int(wp.floor(px)), res - 1)
+    iy = wp.min(int(wp.floor(py)), res - 1)
+    iz = wp.min(int(wp.floor(pz)), res - 1)
+    fx = px - float(ix)
+    fy = py - float(iy)
+    fz = pz - float(iz)
+    for c in range(8):
+        dx = c & 1
+        dy = (c >> 1) & 1
+        dz = (c >> 2) & 1
+        w = wp.where(dx == 1, fx, 1.0 - fx) * wp.where(dy == 1, fy, 1.0 - fy) * wp.where(dz == 1, fz, 1.0 - fz)
+        idx = corner_index(ix + dx, iy + dy, iz + dz, res, dense[level], size)
+        wp.atomic_add(grad_table, level, idx, w * g)
+
+
+def _level_chunks(num_levels: int, device: str) -> list[tuple[int, int]]:
+    """Level ranges for one launch each: all levels on a GPU, one range per CPU thread otherwise."""
+    parts = 1 if device != "cpu" else min(cpu_threads(), num_levels)
+    bounds = [round(i * num_levels / parts) for i in range(parts + 1)]
+    return [(bounds[i], bounds[i + 1]) for i in range(parts) if bounds[i + 1] > bounds[i]]
+
+
+def _launch(kernel, n: int, chunks, inputs_fn, device: str) -> None:
+    ensure_loaded(kernel, device)
+    def run(chunk):
+        lo, hi = chunk
+        wp.launch(kernel, dim=(n, hi - lo), inputs=inputs_fn(lo), device=device)
+
+    parallel_map(run, chunks)
+
+
+class HashEncodeFunction(torch.autograd.Function):
+    """Differentiable w.r.t. the table only (positions get no gradient: the fields never need it)."""
+
+    @staticmethod
+    def forward(ctx, x, table, resolution, dense):
+        x = x.contiguous().float()
+        n, (num_levels, _, nf) = x.shape[0], table.shape
+        if nf != 2:
+            raise ValueError("the Warp hash encoding stores 2 features per level")
+        out = torch.empty(n, num_levels, 2, device=x.device, dtype=torch.float32)
+        if n > 0:
+            dev = device_of(x)
+            wx, wo = wp.from_torch(x), wp.from_torch(out, dtype=wp.vec2)
+            wt = wp.from_torch(table.detach().contiguous(), dtype=wp.vec2)
+            wr, wd = wp.from_torch(resolution), wp.from_torch(dense)
+            _launch(hash_forward, n, _level_chunks(num_levels, dev), lambda lo: [wx, wt, wr, wd, lo, wo], dev)
+        ctx.save_for_backward(x, resolution, dense)
+        ctx.table_shape = table.shape
+        return out.view(n, num_levels * 2)
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        x, resolution, dense = ctx.saved_tensors
+        grad_table = torch.zeros(ctx.table_shape, device=x.device, dtype=torch.float32)
+        if x.shape[0] > 0:
+            dev = device_of(x)
+            n, num_levels = x.shape[0], ctx.table_shape[0]
+            wx = wp.from_torch(x)
+            wg = wp.from_torch(grad_out.contiguous().float().view(n, num_levels, 2), dtype=wp.vec2)
+            wr, wd = wp.from_torch(resolution), wp.from_torch(dense)
+            wgt = wp.from_torch(grad_table, dtype=wp.vec2)
+            _launch(hash_backward, x.shape[0], _level_chunks(ctx.table_shape[0], dev),
+                    lambda lo: [wx, wg, wr, wd, lo, wgt], dev)
+        return None, grad_table, None, None
+
+
+def hash_encode(x: torch.Tensor, table: torch.Tensor, resolution: torch.Tensor, dense: torch.Tensor) -> torch.Tensor:
+    return HashEncodeFunction.apply(x, table, resolution, dense)
+
+
+def hash_encode_reference(x, table, resolution, dense) -> torch.Tensor:
+    """Slow, obviously-correct torch version of the same encoding (for tests)."""
+    num_levels, size, nf = table.shape
+    outs = []
+    x = x.clamp(0, 1)
+    for level in range(num_levels):
+        res = int(resolution[level])
+        p = x * res
+        i = p.floor().long().clamp(max=res - 1)
+        frac = p - i
+        acc = torch.zeros(x.shape[0], nf, dtype=table.dtype)
+        for c in range(8):
+            d = torch.tensor([c & 1, (c >> 1) & 1, (c >> 2) & 1])
+            corner = i + d
+            w = torch.where(d == 1, frac, 1 - frac).prod(-1)
+            if int(dense[level]):
+                idx = corner[:, 0] + (res + 1) * (corner[:, 1] + (res + 1) * corner[:, 2])
+            else:
+                h = corner[:, 0] ^ (corner[:, 1] * PRIME_Y) ^ (corner[:, 2] * PRIME_Z)
+                idx = (h & 0xFFFFFFFF) % size
+            acc = acc + w[:, None] * table[level, idx]
+        outs.append(acc)
+    return torch.cat(outs, dim=-1)

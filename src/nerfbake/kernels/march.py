@@ -1,0 +1,110 @@
+"""Ray marching through an occupancy grid (empty-space skipping) as Warp kernels.
+
+Each ray steps from ``t_near`` (plus a per-ray offset in [0, dt) for training) to ``t_far`` in steps of
+``dt`` and keeps the steps whose midpoint falls in an occupied cell of a G^3 grid over an axis-aligned box.
+Two passes: count per ray, then write packed samples at offsets from the prefix sum. Output is "packed":
+``ray_idx`` (S,), interval ends ``t0``, ``t1`` (S,), sorted by ray then t.
+"""
+from __future__ import annotations
+
+import torch
+
+from nerfbake.kernels import cpu_threads, device_of, ensure_loaded, parallel_map, warp
+
+wp = warp()
+wp.set_module_options({"enable_backward": False})
+
+
+@wp.func
+def occupied(p: wp.vec3, box_min: wp.vec3, inv_cell: wp.vec3, grid: wp.array3d(dtype=wp.uint8)) -> int:
+    g = grid.shape[0]
+    q = wp.cw_mul(p - box_min, inv_cell)
+    i = int(wp.floor(q[0]))
+    j = int(wp.floor(q[1]))
+    k = int(wp.floor(q[2]))
+    if i < 0 or j < 0 or k < 0 or i >= g or j >= g or k >= g:
+        return 0
+    return int(grid[i, j, k])
+
+
+@wp.kernel
+def march_count(
+    origins: wp.array(dtype=wp.vec3), dirs: wp.array(dtype=wp.vec3), t_near: wp.array(dtype=float),
+    t_far: wp.array(dtype=float), offset: wp.array(dtype=float), grid: wp.array3d(dtype=wp.uint8),
+    box_min: wp.vec3, inv_cell: wp.vec3, dt: float, max_steps: int, ray0: int, counts: wp.array(dtype=wp.int32),
+):
+    r = ray0 + wp.tid()
+    o = origins[r]
+    d = dirs[r]
+    t = t_near[r] + offset[r] * dt
+    n = int(0)
+    steps = int(0)
+    while t < t_far[r] and steps < max_steps:
+        if occupied(o + (t + 0.5 * dt) * d, box_min, inv_cell, grid) == 1:
+            n += 1
+        t += dt
+        steps += 1
+    counts[r] = n
+
+
+@wp.kernel
+def march_write(
+    origins: wp.array(dtype=wp.vec3), dirs: wp.array(dtype=wp.vec3), t_near: wp.array(dtype=float),
+    t_far: wp.array(dtype=float), offset: wp.array(dtype=float), grid: wp.array3d(dtype=wp.uint8),
+    box_min: wp.vec3, inv_cell: wp.vec3, dt: float, max_steps: int, ray0: int, starts: wp.array(dtype=wp.int32),
+    ray_idx: wp.array(dtype=wp.int32), t0: wp.array(dtype=float), t1: wp.array(dtype=float),
+):
+    r = ray0 + wp.tid()
+    o = origins[r]
+    d = dirs[r]
+    t = t_near[r] + offset[r] * dt
+    s = starts[r]
+    steps = int(0)
+    while t < t_far[r] and steps < max_steps:
+        if occupied(o + (t + 0.5 * dt) * d, box_min, inv_cell, grid) == 1:
+            ray_idx[s] = r
+            t0[s] = t
+            t1[s] = wp.min(t + dt, t_far[r])
+            s += 1
+        t += dt
+        steps += 1
+
+
+def _chunks(n: int, device: str) -> list[tuple[int, int]]:
+    parts = 1 if device != "cpu" or n < 4096 else cpu_threads() * 2
+    bounds = [round(i * n / parts) for i in range(parts + 1)]
+    return [(bounds[i], bounds[i + 1]) for i in range(parts) if bounds[i + 1] > bounds[i]]
+
+
+def march_rays(
+    origins: torch.Tensor, dirs: torch.Tensor, t_near: torch.Tensor, t_far: torch.Tensor, grid: torch.Tensor,
+    box_min: torch.Tensor, box_max: torch.Tensor, dt: float, offset: torch.Tensor | None = None, max_steps: int = 4096,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Packed samples (ray_idx long (S,), t0 (S,), t1 (S,)) in occupied cells of ``grid`` (G,G,G) bool/uint8."""
+    n = origins.shape[0]
+    dev = device_of(origins)
+    if offset is None:
+        offset = torch.zeros(n, device=origins.device)
+    g = grid.shape[0]
+    inv_cell = (g / (box_max - box_min)).tolist()
+    common = [
+        wp.from_torch(origins.contiguous().float(), dtype=wp.vec3), wp.from_torch(dirs.contiguous().float(), dtype=wp.vec3),
+        wp.from_torch(t_near.contiguous().float()), wp.from_torch(t_far.contiguous().float()),
+        wp.from_torch(offset.contiguous().float()), wp.from_torch(grid.to(torch.uint8).contiguous()),
+        wp.vec3(*box_min.tolist()), wp.vec3(*inv_cell), float(dt), int(max_steps),
+    ]
+    counts = torch.zeros(n, dtype=torch.int32, device=origins.device)
+    wc = wp.from_torch(counts)
+    chunks = _chunks(n, dev)
+    ensure_loaded(march_count, dev)
+    parallel_map(lambda c: wp.launch(march_count, dim=c[1] - c[0], inputs=[*common, c[0], wc], device=dev), chunks)
+    csum = torch.cumsum(counts, 0, dtype=torch.int64)
+    total = int(csum[-1]) if n else 0
+    starts = (csum - counts).to(torch.int32)
+    ray_idx = torch.empty(total, dtype=torch.int32, device=origins.device)
+    t0 = torch.empty(total, device=origins.device)
+    t1 = torch.empty(total, device=origins.device)
+    if total:
+        outs = [wp.from_torch(starts), wp.from_torch(ray_idx), wp.from_torch(t0), wp.from_torch(t1)]
+        parallel_map(lambda c: wp.launch(march_write, dim=c[1] - c[0], inputs=[*common, c[0], *outs], device=dev), chunks)
+    return ray_idx.long(), t0, t1

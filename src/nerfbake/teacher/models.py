@@ -1,0 +1,168 @@
+"""The two teachers: a hash-grid SH field marched through an occupancy grid, and NeRF-SH with coarse-to-fine
+sampling. Both return the same dictionary from :meth:`render_rays` (see the package docstring)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field as dc_field
+
+import torch
+from torch import nn
+
+from nerfbake.fields.hash_sh import HashSHConfig, HashSHField
+from nerfbake.fields.nerf_sh import NeRFSHConfig, NeRFSHField
+from nerfbake.render.packed import packed_composite, packed_weights
+from nerfbake.render.quadrature import composite, weights_from_density
+from nerfbake.render.sampling import sample_pdf, stratified_t, uniform_t
+from nerfbake.render.sh import eval_sh_color
+from nerfbake.teacher.sampling import OccupancyGrid, ray_box
+
+
+@dataclass
+class SceneBox:
+    """Where the teacher spends its resolution; ``near``/``far`` clip rays (dataset bounds)."""
+
+    box_min: list[float]
+    box_max: list[float]
+    near: float = 0.0
+    far: float = 1e10
+    contracted: bool = False
+
+
+@dataclass
+class HashTeacherConfig:
+    field: HashSHConfig = dc_field(default_factory=HashSHConfig)
+    grid_resolution: int = 128
+    render_steps: int = 512  # marching steps across the box diagonal
+    alpha_thresh: float = 0.01
+    grid_update_every: int = 16
+
+
+@dataclass
+class NeRFSHTeacherConfig:
+    field: NeRFSHConfig = dc_field(default_factory=NeRFSHConfig)
+    coarse_samples: int = 64
+    fine_samples: int = 128
+    sparsity_weight: float = 1e-3
+    sparsity_length: float = 0.05
+    sparsity_points: int = 10000
+
+
+def _shade(field_out, dirs):
+    sigma, sh = field_out
+    return sigma, eval_sh_color(sh, dirs)
+
+
+class HashTeacher(nn.Module):
+    kind = "hash"
+
+    def __init__(self, cfg: HashTeacherConfig, box: SceneBox):
+        super().__init__()
+        self.cfg, self.box = cfg, box
+        self.field = HashSHField(cfg.field, box.box_min, box.box_max, contracted=box.contracted)
+        size = torch.tensor(box.box_max) - torch.tensor(box.box_min)
+        self.dt = float(size.norm()) / cfg.render_steps
+        self.grid = OccupancyGrid(box.box_min, box.box_max, cfg.grid_resolution, self.dt, cfg.alpha_thresh)
+
+    @property
+    def sh_degree(self) -> int:
+        return self.field.sh_degree
+
+    def query(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.field(x)
+
+    def before_step(self, step: int, generator: torch.Generator) -> None:
+        if step % self.cfg.grid_update_every == 0:
+            self.grid.update(self.field.density, generator)
+
+    def render_rays(self, origins, dirs, background=None, generator: torch.Generator | None = None) -> dict:
+        n = origins.shape[0]
+        t_near, t_far = ray_box(origins, dirs, self.grid.box_min, self.grid.box_max)
+        t_near = t_near.clamp_min(self.box.near)
+        t_far = t_far.clamp_max(self.box.far)
+        offset = torch.rand(n, generator=generator) if generator is not None else None
+        from nerfbake.kernels.march import march_rays
+
+        ray_idx, t0, t1 = march_rays(origins, dirs, t_near, t_far, self.grid.occupied, self.grid.box_min,
+                                     self.grid.box_max, self.dt, offset)
+        mid = 0.5 * (t0 + t1)
+        pts = origins[ray_idx] + mid[:, None] * dirs[ray_idx]
+        sigma, rgb = _shade(self.field(pts), dirs[ray_idx])
+        w, _ = packed_weights(sigma, t0, t1, ray_idx, n)
+        out = packed_composite(w, rgb, t0, t1, ray_idx, n, background)
+        out.update(ray_idx=ray_idx, t0=t0, t1=t1, w=w, num_samples=ray_idx.numel())
+        return out
+
+    def extra_losses(self, out: dict, generator) -> dict[str, torch.Tensor]:
+        return {}
+
+
+class NeRFSHTeacher(nn.Module):
+    """Coarse and fine NeRF-SH MLPs; the fine pass evaluates coarse + importance samples (NeRF §5.2)."""
+
+    kind = "nerf-sh"
+
+    def __init__(self, cfg: NeRFSHTeacherConfig, box: SceneBox):
+        super().__init__()
+        self.cfg, self.box = cfg, box
+        self.coarse = NeRFSHField(cfg.field)
+        self.fine = NeRFSHField(cfg.field)
+
+    @property
+    def sh_degree(self) -> int:
+        return self.fine.sh_degree
+
+    @property
+    def field(self) -> NeRFSHField:
+        return self.fine
+
+    def query(self, x):
+        return self.fine(x)
+
+    def before_step(self, step, generator) -> None:
+        pass
+
+    def _near_far(self, origins, dirs):
+        t_near, t_far = ray_box(origins, dirs, torch.tensor(self.box.box_min), torch.tensor(self.box.box_max))
+        t_near = t_near.clamp_min(self.box.near)
+        t_far = torch.maximum(t_far.clamp_max(self.box.far), t_near + 1e-3)
+        return t_near, t_far
+
+    def _pass(self, net, origins, dirs, t, background):
+        mid = 0.5 * (t[:, 1:] + t[:, :-1])
+        pts = origins[:, None] + mid[..., None] * dirs[:, None]
+        s = mid.shape[1]
+        sigma, rgb = _shade(net(pts.reshape(-1, 3)), dirs[:, None].expand(-1, s, -1).reshape(-1, 3))
+        sigma, rgb = sigma.view(-1, s), rgb.view(-1, s, 3)
+        w, _ = weights_from_density(sigma, t)
+        return w, composite(w, rgb, background, t), sigma
+
+    def render_rays(self, origins, dirs, background=None, generator: torch.Generator | None = None) -> dict:
+        t_near, t_far = self._near_far(origins, dirs)
+        nc = self.cfg.coarse_samples
+        t_c = stratified_t(t_near, t_far, nc, generator) if generator is not None else uniform_t(t_near, t_far, nc)
+        w_c, out_c, _ = self._pass(self.coarse, origins, dirs, t_c, background)
+        t_f = sample_pdf(t_c, w_c.detach(), self.cfg.fine_samples, deterministic=generator is None, generator=generator)
+        t_all, _ = torch.sort(torch.cat([t_c, t_f], dim=-1), dim=-1)
+        w, out, _ = self._pass(self.fine, origins, dirs, t_all, background)
+        r, s = w.shape
+        out.update(
+            rgb_coarse=out_c["rgb"],
+            ray_idx=torch.arange(r).repeat_interleave(s), t0=t_all[:, :-1].reshape(-1), t1=t_all[:, 1:].reshape(-1),
+            w=w.reshape(-1), num_samples=r * (s + nc),
+        )
+        return out
+
+    def extra_losses(self, out: dict, generator) -> dict[str, torch.Tensor]:
+        """The sparsity prior on random points in the box, and NeRF's coarse colour loss is added by the trainer."""
+        cfg = self.cfg
+        lo, hi = torch.tensor(self.box.box_min), torch.tensor(self.box.box_max)
+        pts = lo + (hi - lo) * torch.rand(cfg.sparsity_points, 3, generator=generator)
+        sigma = self.fine.density(pts)
+        return {"sparsity": cfg.sparsity_weight * (1.0 - torch.exp(-cfg.sparsity_length * sigma).mean())}
+
+
+def build_teacher(kind: str, cfg, box: SceneBox) -> nn.Module:
+    if kind == "hash":
+        return HashTeacher(cfg, box)
+    if kind == "nerf-sh":
+        return NeRFSHTeacher(cfg, box)
+    raise ValueError(f"unknown teacher field {kind!r}; choose hash or nerf-sh")

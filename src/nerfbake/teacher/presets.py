@@ -1,0 +1,57 @@
+"""Training presets. ``cpu-small`` finishes on a 2-core CPU in minutes (tests, demo); ``paper`` is the
+paper-scale GPU preset (PlenOctrees' NeRF-SH: 64+128 samples, 1024-ray batches; hash teacher: 2^22-entry
+tables, 65k-ray batches, 200k steps as in Zip-NeRF/SMERF)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field as dc_field
+
+from nerfbake.fields.hash_sh import HashSHConfig
+from nerfbake.fields.nerf_sh import NeRFSHConfig
+from nerfbake.teacher.models import HashTeacherConfig, NeRFSHTeacherConfig
+
+
+@dataclass
+class TeacherTrainConfig:
+    field: str = "hash"
+    preset: str = "cpu-small"
+    steps: int = 3000
+    batch_rays: int = 4096
+    lr: float = 1e-2
+    lr_final: float = 3e-4
+    warmup_steps: int = 100
+    weight_decay: float = 1e-6
+    seed: int = 0
+    downscale: float = 1.0
+    random_background: bool = True  # RGBA data: composite prediction and target on the same random colour
+    checkpoint_every: int = 500
+    val_every: int = 1000
+    val_rays: int = 4096
+    hash: HashTeacherConfig = dc_field(default_factory=HashTeacherConfig)
+    nerf_sh: NeRFSHTeacherConfig = dc_field(default_factory=NeRFSHTeacherConfig)
+
+    @property
+    def model_config(self):
+        return self.hash if self.field == "hash" else self.nerf_sh
+
+
+def preset(field_kind: str, name: str) -> TeacherTrainConfig:
+    if field_kind not in ("hash", "nerf-sh"):
+        raise ValueError(f"unknown teacher field {field_kind!r}; choose hash or nerf-sh")
+    if name == "cpu-small":
+        if field_kind == "hash":
+            return TeacherTrainConfig(field="hash", preset=name, steps=3000, batch_rays=4096, lr=1e-2, lr_final=3e-4,
+                                      hash=HashTeacherConfig(HashSHConfig(levels=16, log2_table=19, max_res=1024, sh_degree=3)))
+        return TeacherTrainConfig(field="nerf-sh", preset=name, steps=2000, batch_rays=512, lr=5e-4, lr_final=5e-5,
+                                  warmup_steps=0, weight_decay=0.0,
+                                  nerf_sh=NeRFSHTeacherConfig(NeRFSHConfig(num_freqs=8, depth=4, width=128, skip=2),
+                                                              coarse_samples=32, fine_samples=32, sparsity_points=2048))
+    if name == "paper":
+        if field_kind == "hash":
+            return TeacherTrainConfig(field="hash", preset=name, steps=200_000, batch_rays=65536, lr=1e-2, lr_final=1e-3,
+                                      checkpoint_every=5000, val_every=10000,
+                                      hash=HashTeacherConfig(HashSHConfig(levels=20, log2_table=22, max_res=8192, sh_degree=3),
+                                                             grid_resolution=256, render_steps=1024))
+        return TeacherTrainConfig(field="nerf-sh", preset=name, steps=2_000_000, batch_rays=1024, lr=5e-4, lr_final=5e-6,
+                                  warmup_steps=0, weight_decay=0.0, checkpoint_every=10000, val_every=50000,
+                                  nerf_sh=NeRFSHTeacherConfig(NeRFSHConfig(), coarse_samples=64, fine_samples=128))
+    raise ValueError(f"unknown preset {name!r}; choose cpu-small or paper")

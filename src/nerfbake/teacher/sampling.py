@@ -1,0 +1,65 @@
+"""Ray-box intersection and the occupancy grid that lets the hash teacher skip empty space."""
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+
+def ray_box(origins: torch.Tensor, dirs: torch.Tensor, box_min: torch.Tensor, box_max: torch.Tensor):
+    """Slab test: (t_near, t_far) per ray, t_near clamped at 0; t_far < t_near where the ray misses."""
+    inv = 1.0 / torch.where(dirs.abs() < 1e-9, torch.full_like(dirs, 1e-9), dirs)
+    ta, tb = (box_min - origins) * inv, (box_max - origins) * inv
+    t_near = torch.minimum(ta, tb).amax(-1).clamp_min(0.0)
+    t_far = torch.maximum(ta, tb).amin(-1)
+    return t_near, t_far
+
+
+class OccupancyGrid(nn.Module):
+    """A G^3 grid over a box holding an EMA of the field's density (instant-ngp's density grid).
+
+    Cells whose density could give an alpha of at least ``alpha_thresh`` over one marching step stay
+    occupied; every update re-evaluates a random fraction of cells (all of them on the first update).
+    """
+
+    def __init__(self, box_min, box_max, resolution: int = 128, dt: float = 0.01, alpha_thresh: float = 0.01,
+                 decay: float = 0.95, fraction: float = 0.125):
+        super().__init__()
+        self.resolution, self.dt, self.decay, self.fraction = resolution, dt, decay, fraction
+        self.sigma_thresh = -math.log(1.0 - alpha_thresh) / dt
+        self.register_buffer("box_min", torch.as_tensor(box_min, dtype=torch.float32))
+        self.register_buffer("box_max", torch.as_tensor(box_max, dtype=torch.float32))
+        self.register_buffer("density", torch.full((resolution,) * 3, -1.0))  # -1: never evaluated
+        self.register_buffer("occupied", torch.ones((resolution,) * 3, dtype=torch.bool))
+
+    def cell_centres(self, flat_idx: torch.Tensor, jitter: torch.Tensor) -> torch.Tensor:
+        g = self.resolution
+        ijk = torch.stack([flat_idx // (g * g), (flat_idx // g) % g, flat_idx % g], dim=-1).float()
+        return self.box_min + (ijk + jitter) * (self.box_max - self.box_min) / g
+
+    @torch.no_grad()
+    def update(self, density_fn, generator: torch.Generator, chunk: int = 1 << 18) -> None:
+        g = self.resolution
+        flat = self.density.view(-1)
+        n = flat.numel()
+        if (flat < 0).all():
+            idx = torch.arange(n)
+        else:
+            idx = torch.randperm(n, generator=generator)[: int(n * self.fraction)]
+        jitter = torch.rand(idx.numel(), 3, generator=generator)
+        new = torch.empty(idx.numel())
+        for s in range(0, idx.numel(), chunk):
+            new[s: s + chunk] = density_fn(self.cell_centres(idx[s: s + chunk], jitter[s: s + chunk])).float()
+        # Decay every cell (instant-ngp), then raise the re-evaluated ones to their new density.
+        flat.copy_(torch.where(flat < 0, flat, flat * self.decay))
+        old = flat[idx]
+        flat[idx] = torch.where(old < 0, new, torch.maximum(old, new))
+        evaluated = flat >= 0
+        thresh = min(self.sigma_thresh, float(flat[evaluated].mean()))
+        self.occupied.copy_((self.density > thresh) | (self.density < 0))
+        del g
+
+    @property
+    def occupancy_fraction(self) -> float:
+        return float(self.occupied.float().mean())

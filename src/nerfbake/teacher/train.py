@@ -1,0 +1,185 @@
+"""``nerfbake teacher train``: fit a teacher to a dataset with the shared loop (checkpoints, resume, Ctrl-C,
+data parallelism). A run folder holds ``config.json``, ``checkpoint.pt``, ``metrics.jsonl`` and ``val/``."""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from nerfbake.data.dataset import Dataset
+from nerfbake.data.formats import load_dataset
+from nerfbake.data.pixels import PixelStore
+from nerfbake.progress import console, progress_bar
+from nerfbake.teacher.models import HashTeacherConfig, NeRFSHTeacherConfig, SceneBox, build_teacher
+from nerfbake.teacher.presets import TeacherTrainConfig
+from nerfbake.train.loop import (DataParallel, Interrupt, RateMeter, git_revision, load_checkpoint, log_linear_lr,
+                                 save_checkpoint, step_generator, to_jsonable, write_json_atomic)
+from nerfbake.fields.hash_sh import HashSHConfig
+from nerfbake.fields.nerf_sh import NeRFSHConfig
+
+CHECKPOINT = "checkpoint.pt"
+CONFIG = "config.json"
+
+
+def scene_box(ds: Dataset) -> SceneBox:
+    """The region the teacher models. Blender scenes live in [-1.5, 1.5]^3 between near 2 and far 6; other
+    captures are normalised so cameras lie in [-1, 1]^3 and the teacher covers [-1, 1]^3 at full resolution
+    with the contraction taking in everything beyond."""
+    if ds.format == "blender":
+        near, far = ds.bounds or (2.0, 6.0)
+        return SceneBox([-1.5] * 3, [1.5] * 3, near, far)
+    near = 0.01 if ds.bounds is None else max(0.01, 0.5 * ds.bounds[0])
+    return SceneBox([-1.0] * 3, [1.0] * 3, near, 1e10, contracted=True)
+
+
+def config_from_dict(d: dict) -> TeacherTrainConfig:
+    d = dict(d)
+    h, n = d.pop("hash"), d.pop("nerf_sh")
+    hash_cfg = HashTeacherConfig(field=HashSHConfig(**h.pop("field")), **h)
+    nerf_cfg = NeRFSHTeacherConfig(field=NeRFSHConfig(**n.pop("field")), **n)
+    return TeacherTrainConfig(hash=hash_cfg, nerf_sh=nerf_cfg, **d)
+
+
+def make_optimizer(model, cfg: TeacherTrainConfig):
+    grid_params = [p for n, p in model.named_parameters() if n.endswith("grid.table")]
+    other = [p for n, p in model.named_parameters() if not n.endswith("grid.table")]
+    groups = [{"params": other, "weight_decay": cfg.weight_decay}]
+    if grid_params:
+        groups.append({"params": grid_params, "weight_decay": 0.0})
+    return torch.optim.Adam(groups, lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15, fused=True)
+
+
+def load_teacher(run: Path):
+    """(teacher, config, dataset root, checkpoint state) from a run folder, with clear errors."""
+    run = Path(run)
+    cfg_path = run / CONFIG
+    if not cfg_path.is_file():
+        raise FileNotFoundError(f"{cfg_path}: missing; {run} is not a teacher run folder (nerfbake teacher train --out)")
+    meta = json.loads(cfg_path.read_text())
+    try:
+        cfg = config_from_dict(meta["train"])
+        box = SceneBox(**meta["box"])
+    except (KeyError, TypeError) as exc:
+        raise ValueError(f"{cfg_path}: incompatible teacher config ({exc}); retrain with this version") from None
+    state = load_checkpoint(run / CHECKPOINT)
+    model = build_teacher(cfg.field, cfg.model_config, box)
+    try:
+        model.load_state_dict(state["model"])
+    except (RuntimeError, KeyError) as exc:
+        first = str(exc).splitlines()[0]
+        raise ValueError(f"{run / CHECKPOINT}: does not match {cfg_path} ({first}); retrain or restore the pair") from None
+    model.eval()
+    return model, cfg, meta, state
+
+
+def _loss_terms(model, batch, cfg: TeacherTrainConfig, gen, background_mode: str, total_rays: int):
+    target = batch["target"]
+    n = target.shape[0]
+    if target.shape[-1] == 4:
+        bg = torch.rand(n, 3, generator=gen) if background_mode == "random" else torch.ones(n, 3)
+        gt = target[:, :3] * target[:, 3:] + bg * (1 - target[:, 3:])
+    else:
+        bg, gt = None, target
+    out = model.render_rays(batch["origins"], batch["directions"], bg, generator=gen)
+    # Sums divided by the *global* batch size, so gradients summed over ranks equal one process's mean.
+    sq = ((out["rgb"] - gt) ** 2).sum()
+    loss = sq / (3 * total_rays)
+    terms = {"mse": loss.detach()}
+    if "rgb_coarse" in out:
+        loss = loss + ((out["rgb_coarse"] - gt) ** 2).sum() / (3 * total_rays)
+    for name, value in model.extra_losses(out, gen).items():
+        loss = loss + value / max(1, DataParallel().world)
+        terms[name] = value.detach()
+    return loss, terms, out, sq.detach()
+
+
+def train_teacher(data: str | Path, out: str | Path, cfg: TeacherTrainConfig, resume: bool = False,
+                  stop_at: int | None = None) -> Path:
+    """Train (or, with ``resume``, continue) a teacher. ``stop_at`` stops early as Ctrl-C would (for tests
+    and time-boxed runs); the run can then be resumed to the same result as an uninterrupted one."""
+    out = Path(out)
+    dp = DataParallel()
+    torch.manual_seed(cfg.seed)
+    ds = load_dataset(data, downscale=cfg.downscale)
+    box = scene_box(ds)
+    ckpt_path = out / CHECKPOINT
+    if (out / CONFIG).is_file() and not resume and dp.is_main:
+        existing = json.loads((out / CONFIG).read_text())
+        if existing.get("complete"):
+            raise ValueError(f"{out}: already holds a finished teacher; pass --resume to continue or choose another --out")
+    model = build_teacher(cfg.field, cfg.model_config, box)
+    optimizer = make_optimizer(model, cfg)
+    start = 0
+    if resume and ckpt_path.is_file():
+        state = load_checkpoint(ckpt_path)
+        model.load_state_dict(state["model"])
+        optimizer.load_state_dict(state["optimizer"])
+        start = int(state["step"])
+        if dp.is_main:
+            console.print(f"resuming {out} at step {start}")
+    meta = {"train": to_jsonable(cfg), "box": asdict(box), "data": str(Path(data).resolve()), "dataset": ds.info(),
+            "git": git_revision(), "world_size": dp.world, "complete": False}
+    if dp.is_main:
+        write_json_atomic(out / CONFIG, meta)
+    with progress_bar("loading images", len(ds.split("train")), unit="img") as adv:
+        store = PixelStore(ds, "train", progress=lambda k, n: adv())
+
+    def state_dict(step):
+        return {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step, "kind": cfg.field}
+
+    rate = RateMeter()
+    step = start
+    with Interrupt() as interrupt, progress_bar(f"teacher {cfg.field}", cfg.steps, unit="step") as advance:
+        advance(start)
+        log = open(out / "metrics.jsonl", "a") if dp.is_main else None
+        try:
+            while step < cfg.steps:
+                if interrupt.requested or (stop_at is not None and step >= stop_at):
+                    break
+                gen = step_generator(cfg.seed, step)
+                model.train()
+                model.before_step(step, gen)
+                lr = log_linear_lr(step, cfg.steps, cfg.lr, cfg.lr_final, cfg.warmup_steps)
+                for g in optimizer.param_groups:
+                    g["lr"] = lr
+                batch = store.sample_uniform_rays(cfg.batch_rays, gen)
+                mine = dp.shard(cfg.batch_rays)
+                batch = {k: v[mine] for k, v in batch.items()}
+                bg_mode = "random" if cfg.random_background else "white"
+                loss, terms, render, sq = _loss_terms(model, batch, cfg, gen, bg_mode, cfg.batch_rays)
+                optimizer.zero_grad(set_to_none=True)
+                loss.backward()
+                dp.all_reduce_grads(model.parameters())
+                optimizer.step()
+                step += 1
+                mse = dp.all_reduce_sum(float(sq)) / (3 * cfg.batch_rays)
+                psnr = -10 * np.log10(max(mse, 1e-10))
+                rays_s = rate.add(cfg.batch_rays)
+                advance(1)
+                if dp.is_main and (step % 25 == 0 or step == cfg.steps):
+                    rec = {"step": step, "loss": float(loss.detach()), "psnr": psnr, "lr": lr, "rays_per_s": rays_s,
+                           "samples_per_ray": render["num_samples"] / max(1, batch["target"].shape[0]), "time": time.time()}
+                    if hasattr(model, "grid"):
+                        rec["occupancy"] = model.grid.occupancy_fraction
+                    log.write(json.dumps(rec) + "\n")
+                    log.flush()
+                    console.print(f"step {step:6d}  loss {float(loss.detach()):.5f}  psnr {psnr:5.2f}  {rays_s:8.0f} rays/s  "
+                                  f"{rec['samples_per_ray']:.1f} samples/ray", highlight=False) if step % 250 == 0 else None
+                if dp.is_main and step % cfg.checkpoint_every == 0 and step < cfg.steps:
+                    save_checkpoint(ckpt_path, state_dict(step))
+        finally:
+            if log is not None:
+                log.close()
+    if dp.is_main:
+        save_checkpoint(ckpt_path, state_dict(step))
+        meta["complete"] = step >= cfg.steps
+        meta["steps_done"] = step
+        write_json_atomic(out / CONFIG, meta)
+    dp.barrier()
+    if step < cfg.steps:
+        console.print(f"stopped at step {step}; checkpoint saved — continue with --resume")
+    return out

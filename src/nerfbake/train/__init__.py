@@ -1,0 +1,1 @@
+"""Pieces every trainer shares: checkpoints, resume, Ctrl-C, progress, schedules, data parallelism."""

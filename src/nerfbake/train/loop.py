@@ -1,0 +1,171 @@
+"""The shared training-loop machinery.
+
+* Determinism: every step draws its randomness from ``step_generator(seed, step)``, so a resumed run sees
+  exactly the batches an uninterrupted one would, and ranks of a data-parallel run can each take their
+  slice of the same global batch.
+* Checkpoints are written atomically (temporary file, then rename) every N steps and on Ctrl-C.
+* ``torchrun`` launches are detected from the environment; gradients are summed across ranks (gloo on
+  CPU, NCCL on GPU); rank 0 writes files.
+"""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import time
+from dataclasses import asdict, is_dataclass
+from pathlib import Path
+
+import torch
+import torch.distributed as dist
+
+
+def step_generator(seed: int, step: int) -> torch.Generator:
+    return torch.Generator().manual_seed((seed * 1_000_003 + step) % (2**63 - 1))
+
+
+def git_revision() -> str:
+    try:
+        root = Path(__file__).resolve().parents[3]
+        out = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, timeout=5)
+        rev = out.stdout.strip()
+        if rev:
+            dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=root,
+                                   capture_output=True, text=True, timeout=5).stdout.strip()
+            return rev + ("-dirty" if dirty else "")
+    except (OSError, subprocess.SubprocessError):
+        pass
+    return "unknown"
+
+
+def to_jsonable(obj):
+    if is_dataclass(obj):
+        return to_jsonable(asdict(obj))
+    if isinstance(obj, dict):
+        return {k: to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [to_jsonable(v) for v in obj]
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+def write_json_atomic(path: Path, obj) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    tmp.write_text(json.dumps(to_jsonable(obj), indent=2))
+    os.replace(tmp, path)
+
+
+def save_checkpoint(path: Path, state: dict) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    torch.save(state, tmp)
+    os.replace(tmp, path)
+
+
+def load_checkpoint(path: Path) -> dict:
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no checkpoint here; train first or point --run at a training output folder")
+    try:
+        return torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as exc:  # torch raises many types for truncated/corrupt files
+        raise ValueError(f"{path}: cannot read the checkpoint ({type(exc).__name__}: {exc}); it is corrupt or "
+                         "from an incompatible version — retrain or restore it") from None
+
+
+class Interrupt:
+    """Turns the first Ctrl-C (SIGINT) into a flag the loop checks, so it can checkpoint and stop cleanly."""
+
+    def __init__(self):
+        self.requested = False
+        self._old = None
+
+    def __enter__(self):
+        def handler(signum, frame):
+            if self.requested:  # second Ctrl-C: give up immediately
+                raise KeyboardInterrupt
+            self.requested = True
+
+        try:
+            self._old = signal.signal(signal.SIGINT, handler)
+        except ValueError:  # not the main thread
+            self._old = None
+        return self
+
+    def __exit__(self, *exc):
+        if self._old is not None:
+            signal.signal(signal.SIGINT, self._old)
+        return False
+
+
+class DataParallel:
+    """Rank and world size under ``torchrun``; one process otherwise."""
+
+    def __init__(self):
+        self.world = int(os.environ.get("WORLD_SIZE", "1"))
+        self.rank = int(os.environ.get("RANK", "0"))
+        if self.world > 1 and not dist.is_initialized():
+            backend = "nccl" if torch.cuda.is_available() else "gloo"
+            dist.init_process_group(backend)
+
+    @property
+    def is_main(self) -> bool:
+        return self.rank == 0
+
+    def shard(self, n: int) -> slice:
+        """This rank's slice of a global batch of n items."""
+        lo, hi = n * self.rank // self.world, n * (self.rank + 1) // self.world
+        return slice(lo, hi)
+
+    def all_reduce_grads(self, params) -> None:
+        if self.world == 1:
+            return
+        grads = [p.grad for p in params if p.grad is not None]
+        if not grads:
+            return
+        flat = torch.cat([g.reshape(-1) for g in grads])
+        dist.all_reduce(flat)
+        offset = 0
+        for g in grads:
+            g.copy_(flat[offset: offset + g.numel()].view_as(g))
+            offset += g.numel()
+
+    def all_reduce_sum(self, value: float) -> float:
+        if self.world == 1:
+            return value
+        t = torch.tensor([value], dtype=torch.float64)
+        dist.all_reduce(t)
+        return float(t)
+
+    def barrier(self) -> None:
+        if self.world > 1:
+            dist.barrier()
+
+
+def log_linear_lr(step: int, total: int, lr_init: float, lr_final: float, warmup: int = 0) -> float:
+    """Log-linear decay from lr_init to lr_final with an optional linear warm-up (mip-NeRF/Zip-NeRF schedule)."""
+    frac = min(max(step / max(total, 1), 0.0), 1.0)
+    lr = lr_init ** (1 - frac) * lr_final**frac
+    if warmup > 0 and step < warmup:
+        lr *= (step + 1) / warmup
+    return lr
+
+
+class RateMeter:
+    """Rays per second over the recent window, for the progress bar."""
+
+    def __init__(self):
+        self.t0, self.n = time.perf_counter(), 0
+
+    def add(self, n: int) -> float:
+        self.n += n
+        dt = time.perf_counter() - self.t0
+        rate = self.n / dt if dt > 0 else 0.0
+        if dt > 10:
+            self.t0, self.n = time.perf_counter(), 0
+        return rate

@@ -1,0 +1,141 @@
+"""Teachers on a tiny synthetic scene: SH head vs the rendering core, checkpoints, resume, data parallelism."""
+import json
+import os
+import subprocess
+import sys
+from dataclasses import replace
+from pathlib import Path
+
+import pytest
+import torch
+
+from nerfbake.data.synth import SynthConfig, render_dataset
+from nerfbake.fields.hash_sh import HashSHConfig
+from nerfbake.fields.nerf_sh import NeRFSHConfig
+from nerfbake.render.quadrature import composite, weights_from_density
+from nerfbake.render.sh import eval_sh_color
+from nerfbake.teacher.models import HashTeacherConfig, NeRFSHTeacherConfig
+from nerfbake.teacher.presets import TeacherTrainConfig
+from nerfbake.teacher.train import load_teacher, train_teacher
+
+
+@pytest.fixture(scope="session")
+def tiny_scene(tmp_path_factory):
+    return render_dataset(SynthConfig("objects", 32, 32, views=6, spp=4, seed=0), tmp_path_factory.mktemp("tiny") / "scene")
+
+
+def tiny_config(field="hash", steps=6):
+    return TeacherTrainConfig(
+        field=field, preset="test", steps=steps, batch_rays=256, lr=1e-2, lr_final=1e-3, warmup_steps=2,
+        checkpoint_every=3,
+        hash=HashTeacherConfig(HashSHConfig(levels=4, log2_table=12, max_res=64, hidden=16, sh_degree=2),
+                               grid_resolution=32, render_steps=128, grid_update_every=2),
+        nerf_sh=NeRFSHTeacherConfig(NeRFSHConfig(num_freqs=4, depth=2, width=32, skip=1, sh_degree=2),
+                                    coarse_samples=8, fine_samples=8, sparsity_points=64),
+    )
+
+
+def params(run):
+    model, *_ = load_teacher(run)
+    return {k: v.clone() for k, v in model.state_dict().items()}
+
+
+@pytest.mark.parametrize("field", ["hash", "nerf-sh"])
+def test_render_equals_rendering_core_on_the_teachers_intervals(tiny_scene, tmp_path, field):
+    run = train_teacher(tiny_scene, tmp_path / "run", tiny_config(field, steps=4))
+    model, *_ = load_teacher(run)
+    g = torch.Generator().manual_seed(0)
+    origins = torch.tensor([[0.0, -4.0, 1.0]]).repeat(8, 1)
+    dirs = torch.nn.functional.normalize(torch.tensor([0.0, 1.0, -0.25]) + 0.05 * torch.randn(8, 3, generator=g), dim=-1)
+    with torch.no_grad():
+        out = model.render_rays(origins, dirs, torch.ones(3))
+        for r in range(8):
+            sel = out["ray_idx"] == r
+            t0, t1 = out["t0"][sel], out["t1"][sel]
+            if field == "nerf-sh":
+                t = torch.cat([t0, t1[-1:]])
+            else:  # marching may skip empty space: composite only the kept intervals (gaps have zero density)
+                t = torch.stack([t0, t1], -1).reshape(-1)
+            mid = 0.5 * (t[1:] + t[:-1])
+            sigma, sh = model.query(origins[r] + mid[:, None] * dirs[r])
+            rgb = eval_sh_color(sh, dirs[r].expand(len(mid), 3))
+            if field == "hash":
+                sigma = sigma * torch.tensor([1.0, 0.0]).repeat(len(t0))[:-1]  # zero density in the gaps
+            w, _ = weights_from_density(sigma[None], t[None])
+            ref = composite(w, rgb[None], background=1.0)
+            torch.testing.assert_close(out["rgb"][r], ref["rgb"][0], atol=1e-5, rtol=1e-4)
+            # The weights handed to distillation are those of the intervals.
+            kept = w[0] if field == "nerf-sh" else w[0][::2]
+            torch.testing.assert_close(out["w"][sel], kept, atol=1e-5, rtol=1e-4)
+    assert model.sh_degree == 2
+
+
+def test_resume_gives_the_same_weights(tiny_scene, tmp_path):
+    cfg = tiny_config(steps=6)
+    straight = train_teacher(tiny_scene, tmp_path / "straight", cfg)
+    train_teacher(tiny_scene, tmp_path / "resumed", cfg, stop_at=3)
+    meta = json.loads((tmp_path / "resumed" / "config.json").read_text())
+    assert meta["complete"] is False and meta["steps_done"] == 3
+    train_teacher(tiny_scene, tmp_path / "resumed", cfg, resume=True)
+    a, b = params(straight), params(tmp_path / "resumed")
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], atol=0, rtol=0, msg=k)
+
+
+def test_checkpoint_round_trip_and_errors(tiny_scene, tmp_path):
+    run = train_teacher(tiny_scene, tmp_path / "run", tiny_config(steps=2))
+    model, cfg, meta, state = load_teacher(run)
+    assert state["step"] == 2 and meta["complete"] and cfg.hash.field.levels == 4
+    with pytest.raises(FileNotFoundError, match="not a teacher run folder"):
+        load_teacher(tmp_path)
+    (tmp_path / "broken").mkdir()
+    (tmp_path / "broken" / "config.json").write_text((run / "config.json").read_text())
+    (tmp_path / "broken" / "checkpoint.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="cannot read the checkpoint"):
+        load_teacher(tmp_path / "broken")
+    # A checkpoint from a differently shaped model.
+    other = train_teacher(tiny_scene, tmp_path / "other", replace(tiny_config(steps=1), hash=HashTeacherConfig(
+        HashSHConfig(levels=3, log2_table=12, max_res=64, hidden=16, sh_degree=2), grid_resolution=32)))
+    (tmp_path / "broken" / "checkpoint.pt").write_bytes((other / "checkpoint.pt").read_bytes())
+    with pytest.raises(ValueError, match="does not match"):
+        load_teacher(tmp_path / "broken")
+    proc = subprocess.run([sys.executable, "-m", "nerfbake", "teacher", "eval", "--run", str(tmp_path / "broken"), "--json"],
+                          capture_output=True, text=True)
+    assert proc.returncode == 2 and "does not match" in proc.stderr and "Traceback" not in proc.stderr
+
+
+def test_two_processes_equal_one(tiny_scene, tmp_path):
+    """torchrun with 2 CPU processes (gloo) and the same global batch ends where 1 process does."""
+    from nerfbake.train.loop import write_json_atomic
+
+    write_json_atomic(tmp_path / "tiny.json", tiny_config(steps=4))
+    args = ["teacher", "train", "--data", str(tiny_scene), "--config", str(tmp_path / "tiny.json")]
+    env = {**os.environ, "NERFBAKE_THREADS": "1"}
+    one = subprocess.run([sys.executable, "-m", "nerfbake", *args, "--out", str(tmp_path / "one")], env=env,
+                         capture_output=True, text=True)
+    assert one.returncode == 0, one.stderr[-2000:]
+    torchrun = Path(sys.executable).with_name("torchrun")
+    two = subprocess.run([str(torchrun), "--standalone", "--nproc_per_node", "2", "-m", "nerfbake", *args,
+                          "--out", str(tmp_path / "two")], env=env, capture_output=True, text=True)
+    assert two.returncode == 0, two.stderr[-3000:]
+    assert json.loads((tmp_path / "two" / "config.json").read_text())["world_size"] == 2
+    a, b = params(tmp_path / "one"), params(tmp_path / "two")
+    for k in a:
+        torch.testing.assert_close(a[k], b[k], atol=1e-4, rtol=1e-3, msg=k)
+
+
+def test_eval_and_render_commands(tiny_scene, tmp_path):
+    run = train_teacher(tiny_scene, tmp_path / "run", tiny_config(steps=2))
+    proc = subprocess.run([sys.executable, "-m", "nerfbake", "teacher", "eval", "--run", str(run), "--max-views", "2",
+                           "--json"], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    res = json.loads(proc.stdout)
+    assert {"psnr", "ssim", "lpips_vgg", "num_views", "seconds_per_view"} <= set(res) and res["num_views"] == 2
+    assert len(res["per_image"]) == 2 and res["git"]
+    pose_file = tmp_path / "poses.json"
+    pose_file.write_text(json.dumps({"camera_angle_x": 0.7, "w": 20, "h": 16, "frames": [
+        {"transform_matrix": [[1, 0, 0, 0], [0, 0, -1, -4], [0, 1, 0, 0.5], [0, 0, 0, 1]]}]}))
+    proc = subprocess.run([sys.executable, "-m", "nerfbake", "teacher", "render", "--run", str(run), "--pose-file",
+                           str(pose_file), "--out", str(tmp_path / "renders")], capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr
+    assert (tmp_path / "renders" / "0000.png").is_file()
