@@ -10,10 +10,11 @@ from nerfbake.data import images
 def test_demo_synthesises_and_summarises(tmp_path):
     out = tmp_path / "demo"
     proc = subprocess.run([sys.executable, "-m", "nerfbake", "demo", "--out", str(out), "--width", "48",
-                           "--views", "4", "--spp", "4"], capture_output=True, text=True)
+                           "--views", "4", "--spp", "4", "--teacher-steps", "20", "--eval-views", "1"], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
-    info = json.loads(proc.stdout[proc.stdout.index("{"): proc.stdout.rindex("}") + 1])
-    assert info["format"] == "blender" and info["splits"]["train"] == 4
+    res = json.loads(proc.stdout[proc.stdout.index("{"): proc.stdout.rindex("}") + 1])
+    assert res["scene"]["format"] == "blender" and res["scene"]["splits"]["train"] == 4
+    assert res["teacher"]["num_views"] == 1 and res["teacher"]["psnr"] > 5
     assert (out / "scene" / "transforms_test.json").is_file()
 
 

@@ -22,3 +22,18 @@ def test_sample_pdf_follows_the_histogram():
     assert abs(frac_12 - 0.75) < 0.02 and abs(frac_23 - 0.25) < 0.02
     det = sample_pdf(t, w, 5, deterministic=True, eps=0.0)
     assert (det >= 1).all() and (det <= 3).all()
+
+
+def test_interlevel_loss_zero_when_proposal_bounds_final_and_distortion_prefers_compact():
+    from nerfbake.render.stepfun import distortion_loss, inner_outer, interlevel_loss
+
+    t = torch.linspace(0, 1, 9)[None]
+    w = torch.tensor([[0.0, 0.1, 0.4, 0.3, 0.1, 0.0, 0.0, 0.0]])
+    assert float(interlevel_loss(t, w, t, w)) == 0.0
+    coarse_t = torch.linspace(0, 1, 3)[None]
+    _, outer = inner_outer(t, coarse_t, torch.tensor([[0.8, 0.1]]))
+    assert torch.allclose(outer[0, :4], torch.full((4,), 0.8)) and torch.allclose(outer[0, 4:], torch.full((4,), 0.1))
+    assert float(interlevel_loss(t, w, coarse_t, torch.tensor([[0.1, 0.1]]))) > 0
+    spread = torch.full((1, 8), 0.125)
+    compact = torch.tensor([[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0]])
+    assert float(distortion_loss(t, compact)) < float(distortion_loss(t, spread))

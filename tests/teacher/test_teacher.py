@@ -139,3 +139,24 @@ def test_eval_and_render_commands(tiny_scene, tmp_path):
                            str(pose_file), "--out", str(tmp_path / "renders")], capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
     assert (tmp_path / "renders" / "0000.png").is_file()
+
+
+def test_proposal_sampler_on_an_unbounded_capture(tmp_path):
+    """The fox capture (transforms.json, contracted): proposal sampling trains, and the interlevel loss falls."""
+    from conftest import shared_data
+
+    fox = shared_data("fox")
+    cfg = tiny_config(steps=30)
+    cfg.downscale = 16
+    cfg.batch_rays = 128
+    cfg.hash.proposal = replace(cfg.hash.proposal, proposal_samples=16, final_samples=8, levels=3, log2_table=10)
+    run = train_teacher(fox, tmp_path / "fox", cfg)
+    model, *_ = load_teacher(run)
+    assert hasattr(model, "proposal") and not hasattr(model, "grid")
+    origins = torch.zeros(4, 3)
+    dirs = torch.nn.functional.normalize(torch.randn(4, 3, generator=torch.Generator().manual_seed(0)), dim=-1)
+    with torch.no_grad():
+        out = model.render_rays(origins, dirs, None)
+    assert out["rgb"].shape == (4, 3) and torch.isfinite(out["rgb"]).all()
+    assert (out["t1"] >= out["t0"]).all() and (out["w"] >= 0).all()
+    assert (out["acc"] <= 1 + 1e-5).all()

@@ -37,7 +37,7 @@ def hash_forward(
     level0: int,
     out: wp.array2d(dtype=wp.vec2),
 ):
-    n, j = wp.tid()
+    j, n = wp.tid()
     level = level0 + j
     res = resolution[level]
     size = table.shape[1]
@@ -70,7 +70,7 @@ def hash_backward(
     level0: int,
     grad_table: wp.array2d(dtype=wp.vec2),
 ):
-    n, j = wp.tid()
+    j, n = wp.tid()
     level = level0 + j
     res = resolution[level]
     size = grad_table.shape[1]
@@ -104,13 +104,19 @@ def _launch(kernel, n: int, chunks, inputs_fn, device: str) -> None:
     ensure_loaded(kernel, device)
     def run(chunk):
         lo, hi = chunk
-        wp.launch(kernel, dim=(n, hi - lo), inputs=inputs_fn(lo), device=device)
+        # Level-major order: a thread sweeps all points of one level before the next, so it works in one
+        # table (a few MB) at a time instead of jumping between all of them for every point.
+        wp.launch(kernel, dim=(hi - lo, n), inputs=inputs_fn(lo), device=device)
 
     parallel_map(run, chunks)
 
 
 class HashEncodeFunction(torch.autograd.Function):
-    """Differentiable w.r.t. the table only (positions get no gradient: the fields never need it)."""
+    """Differentiable w.r.t. the table only (positions get no gradient: the fields never need it).
+
+    For a leaf table (a Parameter) the backward kernel adds straight into ``table.grad`` instead of returning a
+    fresh table-sized tensor: allocating and zero-filling tens of MB every step (page faults) cost more than
+    the kernel itself. Trainers should zero gradients with ``set_to_none=False`` to keep that buffer."""
 
     @staticmethod
     def forward(ctx, x, table, resolution, dense):
@@ -127,12 +133,19 @@ class HashEncodeFunction(torch.autograd.Function):
             _launch(hash_forward, n, _level_chunks(num_levels, dev), lambda lo: [wx, wt, wr, wd, lo, wo], dev)
         ctx.save_for_backward(x, resolution, dense)
         ctx.table_shape = table.shape
+        ctx.leaf_table = table if table.is_leaf and table.requires_grad else None
         return out.view(n, num_levels * 2)
 
     @staticmethod
     def backward(ctx, grad_out):
         x, resolution, dense = ctx.saved_tensors
-        grad_table = torch.zeros(ctx.table_shape, device=x.device, dtype=torch.float32)
+        leaf = ctx.leaf_table
+        if leaf is not None:
+            if leaf.grad is None:
+                leaf.grad = torch.zeros_like(leaf)
+            grad_table = leaf.grad
+        else:
+            grad_table = torch.zeros(ctx.table_shape, device=x.device, dtype=torch.float32)
         if x.shape[0] > 0:
             dev = device_of(x)
             n, num_levels = x.shape[0], ctx.table_shape[0]
@@ -142,7 +155,7 @@ class HashEncodeFunction(torch.autograd.Function):
             wgt = wp.from_torch(grad_table, dtype=wp.vec2)
             _launch(hash_backward, x.shape[0], _level_chunks(ctx.table_shape[0], dev),
                     lambda lo: [wx, wg, wr, wd, lo, wgt], dev)
-        return None, grad_table, None, None
+        return None, (None if leaf is not None else grad_table), None, None
 
 
 def hash_encode(x: torch.Tensor, table: torch.Tensor, resolution: torch.Tensor, dense: torch.Tensor) -> torch.Tensor:

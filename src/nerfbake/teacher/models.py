@@ -13,6 +13,7 @@ from nerfbake.render.packed import packed_composite, packed_weights
 from nerfbake.render.quadrature import composite, weights_from_density
 from nerfbake.render.sampling import sample_pdf, stratified_t, uniform_t
 from nerfbake.render.sh import eval_sh_color
+from nerfbake.teacher.proposal import ProposalConfig, ProposalSampler
 from nerfbake.teacher.sampling import OccupancyGrid, ray_box
 
 
@@ -34,6 +35,7 @@ class HashTeacherConfig:
     render_steps: int = 512  # marching steps across the box diagonal
     alpha_thresh: float = 0.01
     grid_update_every: int = 16
+    proposal: ProposalConfig = dc_field(default_factory=ProposalConfig)  # unbounded scenes
 
 
 @dataclass
@@ -52,6 +54,8 @@ def _shade(field_out, dirs):
 
 
 class HashTeacher(nn.Module):
+    """Bounded scenes march through an occupancy grid; unbounded (contracted) ones use proposal sampling."""
+
     kind = "hash"
 
     def __init__(self, cfg: HashTeacherConfig, box: SceneBox):
@@ -60,7 +64,11 @@ class HashTeacher(nn.Module):
         self.field = HashSHField(cfg.field, box.box_min, box.box_max, contracted=box.contracted)
         size = torch.tensor(box.box_max) - torch.tensor(box.box_min)
         self.dt = float(size.norm()) / cfg.render_steps
-        self.grid = OccupancyGrid(box.box_min, box.box_max, cfg.grid_resolution, self.dt, cfg.alpha_thresh)
+        if box.contracted:
+            lo, hi = torch.tensor(box.box_min), torch.tensor(box.box_max)
+            self.proposal = ProposalSampler(cfg.proposal, (lo + hi) / 2, (hi - lo) / 2)
+        else:
+            self.grid = OccupancyGrid(box.box_min, box.box_max, cfg.grid_resolution, self.dt, cfg.alpha_thresh)
 
     @property
     def sh_degree(self) -> int:
@@ -70,10 +78,12 @@ class HashTeacher(nn.Module):
         return self.field(x)
 
     def before_step(self, step: int, generator: torch.Generator) -> None:
-        if step % self.cfg.grid_update_every == 0:
+        if not self.box.contracted and step % self.cfg.grid_update_every == 0:
             self.grid.update(self.field.density, generator)
 
     def render_rays(self, origins, dirs, background=None, generator: torch.Generator | None = None) -> dict:
+        if self.box.contracted:
+            return self._render_proposal(origins, dirs, background, generator)
         n = origins.shape[0]
         t_near, t_far = ray_box(origins, dirs, self.grid.box_min, self.grid.box_max)
         t_near = t_near.clamp_min(self.box.near)
@@ -91,8 +101,26 @@ class HashTeacher(nn.Module):
         out.update(ray_idx=ray_idx, t0=t0, t1=t1, w=w, num_samples=ray_idx.numel())
         return out
 
+    def _render_proposal(self, origins, dirs, background, generator) -> dict:
+        r = origins.shape[0]
+        near = torch.full((r,), float(self.box.near))
+        s, t, proposal = self.proposal.sample(origins, dirs, near, generator)
+        mid = 0.5 * (t[:, 1:] + t[:, :-1])
+        pts = origins[:, None] + mid[..., None] * dirs[:, None]
+        k = mid.shape[1]
+        sigma, rgb = _shade(self.field(pts.reshape(-1, 3)), dirs[:, None].expand(-1, k, -1).reshape(-1, 3))
+        w, _ = weights_from_density(sigma.view(r, k), t)
+        out = composite(w, rgb.view(r, k, 3), background, t)
+        out.update(ray_idx=torch.arange(r).repeat_interleave(k), t0=t[:, :-1].reshape(-1), t1=t[:, 1:].reshape(-1),
+                   w=w.reshape(-1), num_samples=r * (k + self.cfg.proposal.proposal_samples))
+        out["_proposal"] = (s, w, proposal)
+        return out
+
     def extra_losses(self, out: dict, generator) -> dict[str, torch.Tensor]:
-        return {}
+        if "_proposal" not in out:
+            return {}
+        s, w, proposal = out["_proposal"]
+        return self.proposal.losses(s, w, proposal)
 
 
 class NeRFSHTeacher(nn.Module):

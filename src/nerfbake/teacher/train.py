@@ -17,9 +17,10 @@ from nerfbake.progress import console, progress_bar
 from nerfbake.teacher.models import HashTeacherConfig, NeRFSHTeacherConfig, SceneBox, build_teacher
 from nerfbake.teacher.presets import TeacherTrainConfig
 from nerfbake.train.loop import (DataParallel, Interrupt, RateMeter, git_revision, load_checkpoint, log_linear_lr,
-                                 save_checkpoint, step_generator, to_jsonable, write_json_atomic)
+                                 save_checkpoint, step_decay_lr, step_generator, to_jsonable, write_json_atomic)
 from nerfbake.fields.hash_sh import HashSHConfig
 from nerfbake.fields.nerf_sh import NeRFSHConfig
+from nerfbake.teacher.proposal import ProposalConfig
 
 CHECKPOINT = "checkpoint.pt"
 CONFIG = "config.json"
@@ -39,7 +40,8 @@ def scene_box(ds: Dataset) -> SceneBox:
 def config_from_dict(d: dict) -> TeacherTrainConfig:
     d = dict(d)
     h, n = d.pop("hash"), d.pop("nerf_sh")
-    hash_cfg = HashTeacherConfig(field=HashSHConfig(**h.pop("field")), **h)
+    prop = ProposalConfig(**h.pop("proposal")) if "proposal" in h else ProposalConfig()
+    hash_cfg = HashTeacherConfig(field=HashSHConfig(**h.pop("field")), proposal=prop, **h)
     nerf_cfg = NeRFSHTeacherConfig(field=NeRFSHConfig(**n.pop("field")), **n)
     return TeacherTrainConfig(hash=hash_cfg, nerf_sh=nerf_cfg, **d)
 
@@ -131,6 +133,27 @@ def train_teacher(data: str | Path, out: str | Path, cfg: TeacherTrainConfig, re
     def state_dict(step):
         return {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step, "kind": cfg.field}
 
+    val_split = "val" if "val" in ds.splits else "test"
+    val_frame = ds.frames[ds.split(val_split)[0]]
+
+    def validate(step):
+        """Render one held-out view (at most 200 px wide) to RUN/val/, and log its PSNR."""
+        from nerfbake.teacher.evaluate import render_camera, to_png
+        import imageio.v3 as iio
+
+        factor = max(1.0, val_frame.camera.width / 200)
+        cam = val_frame.camera.scaled(factor)
+        model.eval()
+        pred = render_camera(model, cam, ds.background or (1.0, 1.0, 1.0))["rgb"]
+        model.train()
+        gt = ds.image(ds.split(val_split)[0])
+        if factor > 1:
+            from nerfbake.data.images import area_downscale
+            gt = area_downscale(np.round(gt * 255).astype(np.uint8), (cam.width, cam.height)).astype(np.float32) / 255
+        (out / "val").mkdir(exist_ok=True)
+        iio.imwrite(out / "val" / f"step_{step:07d}.png", to_png(np.concatenate([pred, gt], axis=1)))
+        return float(-10 * np.log10(max(np.mean((np.clip(pred, 0, 1) - gt) ** 2), 1e-10)))
+
     rate = RateMeter()
     step = start
     with Interrupt() as interrupt, progress_bar(f"teacher {cfg.field}", cfg.steps, unit="step") as advance:
@@ -143,7 +166,10 @@ def train_teacher(data: str | Path, out: str | Path, cfg: TeacherTrainConfig, re
                 gen = step_generator(cfg.seed, step)
                 model.train()
                 model.before_step(step, gen)
-                lr = log_linear_lr(step, cfg.steps, cfg.lr, cfg.lr_final, cfg.warmup_steps)
+                if cfg.lr_schedule == "step":
+                    lr = step_decay_lr(step, cfg.steps, cfg.lr, cfg.warmup_steps)
+                else:
+                    lr = log_linear_lr(step, cfg.steps, cfg.lr, cfg.lr_final, cfg.warmup_steps)
                 for g in optimizer.param_groups:
                     g["lr"] = lr
                 batch = store.sample_uniform_rays(cfg.batch_rays, gen)
@@ -151,7 +177,7 @@ def train_teacher(data: str | Path, out: str | Path, cfg: TeacherTrainConfig, re
                 batch = {k: v[mine] for k, v in batch.items()}
                 bg_mode = "random" if cfg.random_background else "white"
                 loss, terms, render, sq = _loss_terms(model, batch, cfg, gen, bg_mode, cfg.batch_rays)
-                optimizer.zero_grad(set_to_none=True)
+                optimizer.zero_grad(set_to_none=False)  # keeps the hash table's gradient buffer
                 loss.backward()
                 dp.all_reduce_grads(model.parameters())
                 optimizer.step()
@@ -169,6 +195,10 @@ def train_teacher(data: str | Path, out: str | Path, cfg: TeacherTrainConfig, re
                     log.flush()
                     console.print(f"step {step:6d}  loss {float(loss.detach()):.5f}  psnr {psnr:5.2f}  {rays_s:8.0f} rays/s  "
                                   f"{rec['samples_per_ray']:.1f} samples/ray", highlight=False) if step % 250 == 0 else None
+                if dp.is_main and cfg.val_every and step % cfg.val_every == 0:
+                    vpsnr = validate(step)
+                    log.write(json.dumps({"step": step, "val_psnr": vpsnr, "val_view": val_frame.name}) + "\n")
+                    console.print(f"step {step:6d}  validation PSNR {vpsnr:.2f} dB ({val_frame.name}) -> {out / 'val'}")
                 if dp.is_main and step % cfg.checkpoint_every == 0 and step < cfg.steps:
                     save_checkpoint(ckpt_path, state_dict(step))
         finally:

@@ -156,6 +156,15 @@ def log_linear_lr(step: int, total: int, lr_init: float, lr_final: float, warmup
     return lr
 
 
+def step_decay_lr(step: int, total: int, lr_init: float, warmup: int = 0, milestones=(0.5, 0.75, 0.9),
+                  gamma: float = 0.33) -> float:
+    """Constant, then multiplied by ``gamma`` at each milestone fraction (instant-ngp/nerfacc style); warm-up."""
+    lr = lr_init * gamma ** sum(step >= m * total for m in milestones)
+    if warmup > 0 and step < warmup:
+        lr *= (step + 1) / warmup
+    return lr
+
+
 class RateMeter:
     """Rays per second over the recent window, for the progress bar."""
 
