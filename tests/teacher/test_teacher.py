@@ -160,3 +160,37 @@ def test_proposal_sampler_on_an_unbounded_capture(tmp_path):
     assert out["rgb"].shape == (4, 3) and torch.isfinite(out["rgb"]).all()
     assert (out["t1"] >= out["t0"]).all() and (out["w"] >= 0).all()
     assert (out["acc"] <= 1 + 1e-5).all()
+
+
+def test_ctrl_c_saves_a_checkpoint_and_resume_finishes(tiny_scene, tmp_path):
+    import signal
+    import time
+
+    from nerfbake.train.loop import write_json_atomic
+
+    cfg = tiny_config(steps=100000)
+    write_json_atomic(tmp_path / "cfg.json", cfg)
+    run = tmp_path / "run"
+    cmd = [sys.executable, "-m", "nerfbake", "teacher", "train", "--data", str(tiny_scene), "--out", str(run),
+           "--config", str(tmp_path / "cfg.json")]
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 120
+    while time.time() < deadline:
+        log = run / "metrics.jsonl"
+        if log.is_file() and log.read_text().count("\n") >= 1:
+            break
+        time.sleep(0.2)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 0, err[-2000:]
+    assert "continue with --resume" in err
+    meta = json.loads((run / "config.json").read_text())
+    assert meta["complete"] is False and meta["steps_done"] >= 25
+    cfg_done = tiny_config(steps=meta["steps_done"] + 2)
+    write_json_atomic(tmp_path / "cfg2.json", cfg_done)
+    cmd[-1] = str(tmp_path / "cfg2.json")
+    done = subprocess.run([*cmd, "--resume"], capture_output=True, text=True)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert json.loads((run / "config.json").read_text())["complete"] is True
+    again = subprocess.run(cmd, capture_output=True, text=True)  # a finished run is not overwritten by accident
+    assert again.returncode == 2 and "already holds a finished teacher" in again.stderr

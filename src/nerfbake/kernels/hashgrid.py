@@ -3,7 +3,7 @@
 Shapes: ``x`` (N, 3) in [0, 1]^3; ``table`` (L, T, F) features; ``resolution`` (L,) int grid size per level;
 ``dense`` (L,) int, 1 where (res+1)^3 <= T so the level is indexed densely instead of hashed. Output
 (N, L*F) with F = 2 (features are ``vec2``, as in instant-ngp's default). One thread per (point, level); the backward scatters into the table with atomic adds, and
-CPU launches are split by level so that threads never write the same table rows.
+CPU launches deal the levels out over threads, so threads never write the same table rows.
 """
 from __future__ import annotations
 
@@ -35,10 +35,11 @@ def hash_forward(
     resolution: wp.array(dtype=wp.int32),
     dense: wp.array(dtype=wp.int32),
     level0: int,
+    level_stride: int,
     out: wp.array2d(dtype=wp.vec2),
 ):
     j, n = wp.tid()
-    level = level0 + j
+    level = level0 + j * level_stride
     res = resolution[level]
     size = table.shape[1]
     px = wp.clamp(x[n, 0], 0.0, 1.0) * float(res)
@@ -68,10 +69,11 @@ def hash_backward(
     resolution: wp.array(dtype=wp.int32),
     dense: wp.array(dtype=wp.int32),
     level0: int,
+    level_stride: int,
     grad_table: wp.array2d(dtype=wp.vec2),
 ):
     j, n = wp.tid()
-    level = level0 + j
+    level = level0 + j * level_stride
     res = resolution[level]
     size = grad_table.shape[1]
     g = grad_out[n, level]
@@ -93,20 +95,22 @@ def hash_backward(
         wp.atomic_add(grad_table, level, idx, w * g)
 
 
-def _level_chunks(num_levels: int, device: str) -> list[tuple[int, int]]:
-    """Level ranges for one launch each: all levels on a GPU, one range per CPU thread otherwise."""
+def _level_chunks(num_levels: int, device: str) -> list[tuple[int, int, int]]:
+    """(first level, stride, count) per launch: all levels at once on a GPU; on the CPU one launch per thread
+    with the levels dealt out round-robin, so every thread gets its share of cheap dense (coarse) levels and
+    expensive hashed (fine) ones, and no two threads write the same table rows."""
     parts = 1 if device != "cpu" else min(cpu_threads(), num_levels)
-    bounds = [round(i * num_levels / parts) for i in range(parts + 1)]
-    return [(bounds[i], bounds[i + 1]) for i in range(parts) if bounds[i + 1] > bounds[i]]
+    return [(t, parts, len(range(t, num_levels, parts))) for t in range(parts)]
 
 
 def _launch(kernel, n: int, chunks, inputs_fn, device: str) -> None:
     ensure_loaded(kernel, device)
+
     def run(chunk):
-        lo, hi = chunk
+        level0, stride, count = chunk
         # Level-major order: a thread sweeps all points of one level before the next, so it works in one
         # table (a few MB) at a time instead of jumping between all of them for every point.
-        wp.launch(kernel, dim=(hi - lo, n), inputs=inputs_fn(lo), device=device)
+        wp.launch(kernel, dim=(count, n), inputs=inputs_fn(level0, stride), device=device)
 
     parallel_map(run, chunks)
 
@@ -130,7 +134,7 @@ class HashEncodeFunction(torch.autograd.Function):
             wx, wo = wp.from_torch(x), wp.from_torch(out, dtype=wp.vec2)
             wt = wp.from_torch(table.detach().contiguous(), dtype=wp.vec2)
             wr, wd = wp.from_torch(resolution), wp.from_torch(dense)
-            _launch(hash_forward, n, _level_chunks(num_levels, dev), lambda lo: [wx, wt, wr, wd, lo, wo], dev)
+            _launch(hash_forward, n, _level_chunks(num_levels, dev), lambda lo, st: [wx, wt, wr, wd, lo, st, wo], dev)
         ctx.save_for_backward(x, resolution, dense)
         ctx.table_shape = table.shape
         ctx.leaf_table = table if table.is_leaf and table.requires_grad else None
@@ -154,7 +158,7 @@ class HashEncodeFunction(torch.autograd.Function):
             wr, wd = wp.from_torch(resolution), wp.from_torch(dense)
             wgt = wp.from_torch(grad_table, dtype=wp.vec2)
             _launch(hash_backward, x.shape[0], _level_chunks(ctx.table_shape[0], dev),
-                    lambda lo: [wx, wg, wr, wd, lo, wgt], dev)
+                    lambda lo, st: [wx, wg, wr, wd, lo, st, wgt], dev)
         return None, (None if leaf is not None else grad_table), None, None
 
 

@@ -40,7 +40,7 @@ def preset(field_kind: str, name: str) -> TeacherTrainConfig:
         raise ValueError(f"unknown teacher field {field_kind!r}; choose hash or nerf-sh")
     if name == "cpu-small":
         if field_kind == "hash":
-            return TeacherTrainConfig(field="hash", preset=name, steps=5000, batch_rays=4096, lr=1e-2, lr_schedule="step",
+            return TeacherTrainConfig(field="hash", preset=name, steps=7000, batch_rays=4096, lr=1e-2, lr_schedule="step",
                                       hash=HashTeacherConfig(HashSHConfig(levels=16, log2_table=19, max_res=1024, sh_degree=3)))
         return TeacherTrainConfig(field="nerf-sh", preset=name, steps=2000, batch_rays=512, lr=5e-4, lr_final=5e-5,
                                   warmup_steps=0, weight_decay=0.0,

@@ -78,7 +78,7 @@ def load_teacher(run: Path):
     return model, cfg, meta, state
 
 
-def _loss_terms(model, batch, cfg: TeacherTrainConfig, gen, background_mode: str, total_rays: int):
+def _loss_terms(model, batch, cfg: TeacherTrainConfig, gen, background_mode: str, total_rays: int, world: int = 1):
     target = batch["target"]
     n = target.shape[0]
     if target.shape[-1] == 4:
@@ -94,9 +94,31 @@ def _loss_terms(model, batch, cfg: TeacherTrainConfig, gen, background_mode: str
     if "rgb_coarse" in out:
         loss = loss + ((out["rgb_coarse"] - gt) ** 2).sum() / (3 * total_rays)
     for name, value in model.extra_losses(out, gen).items():
-        loss = loss + value / max(1, DataParallel().world)
+        loss = loss + value / world  # per-rank means; summed over ranks by the gradient all-reduce
         terms[name] = value.detach()
     return loss, terms, out, sq.detach()
+
+
+def render_validation(model, ds: Dataset, index: int, out_dir: Path, step: int) -> float:
+    """Render one held-out view (at most 200 px wide) next to its ground truth into ``out_dir``; returns PSNR."""
+    import imageio.v3 as iio
+
+    from nerfbake.data.images import area_downscale
+    from nerfbake.teacher.evaluate import render_camera, to_png
+
+    camera = ds.frames[index].camera
+    factor = max(1.0, camera.width / 200)
+    cam = camera.scaled(factor)
+    was_training = model.training
+    model.eval()
+    pred = render_camera(model, cam, ds.background or (1.0, 1.0, 1.0))["rgb"]
+    model.train(was_training)
+    gt = ds.image(index)
+    if factor > 1:
+        gt = area_downscale(np.round(gt * 255).astype(np.uint8), (cam.width, cam.height)).astype(np.float32) / 255
+    out_dir.mkdir(parents=True, exist_ok=True)
+    iio.imwrite(out_dir / f"step_{step:07d}.png", to_png(np.concatenate([pred, gt], axis=1)))
+    return float(-10 * np.log10(max(np.mean((np.clip(pred, 0, 1) - gt) ** 2), 1e-10)))
 
 
 def train_teacher(data: str | Path, out: str | Path, cfg: TeacherTrainConfig, resume: bool = False,
@@ -134,25 +156,9 @@ def train_teacher(data: str | Path, out: str | Path, cfg: TeacherTrainConfig, re
         return {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step, "kind": cfg.field}
 
     val_split = "val" if "val" in ds.splits else "test"
-    val_frame = ds.frames[ds.split(val_split)[0]]
-
-    def validate(step):
-        """Render one held-out view (at most 200 px wide) to RUN/val/, and log its PSNR."""
-        from nerfbake.teacher.evaluate import render_camera, to_png
-        import imageio.v3 as iio
-
-        factor = max(1.0, val_frame.camera.width / 200)
-        cam = val_frame.camera.scaled(factor)
-        model.eval()
-        pred = render_camera(model, cam, ds.background or (1.0, 1.0, 1.0))["rgb"]
-        model.train()
-        gt = ds.image(ds.split(val_split)[0])
-        if factor > 1:
-            from nerfbake.data.images import area_downscale
-            gt = area_downscale(np.round(gt * 255).astype(np.uint8), (cam.width, cam.height)).astype(np.float32) / 255
-        (out / "val").mkdir(exist_ok=True)
-        iio.imwrite(out / "val" / f"step_{step:07d}.png", to_png(np.concatenate([pred, gt], axis=1)))
-        return float(-10 * np.log10(max(np.mean((np.clip(pred, 0, 1) - gt) ** 2), 1e-10)))
+    val_index = ds.split(val_split)[0]
+    validate = lambda step: render_validation(model, ds, val_index, out / "val", step)  # noqa: E731
+    val_frame = ds.frames[val_index]
 
     rate = RateMeter()
     step = start
@@ -176,7 +182,7 @@ def train_teacher(data: str | Path, out: str | Path, cfg: TeacherTrainConfig, re
                 mine = dp.shard(cfg.batch_rays)
                 batch = {k: v[mine] for k, v in batch.items()}
                 bg_mode = "random" if cfg.random_background else "white"
-                loss, terms, render, sq = _loss_terms(model, batch, cfg, gen, bg_mode, cfg.batch_rays)
+                loss, terms, render, sq = _loss_terms(model, batch, cfg, gen, bg_mode, cfg.batch_rays, dp.world)
                 optimizer.zero_grad(set_to_none=False)  # keeps the hash table's gradient buffer
                 loss.backward()
                 dp.all_reduce_grads(model.parameters())
