@@ -19,7 +19,8 @@ from nerfbake.data.pixels import PixelStore
 from nerfbake.kernels.hashgrid import hash_encode, hash_encode_reference
 from nerfbake.teacher.models import build_teacher
 from nerfbake.teacher.presets import preset
-from nerfbake.teacher.train import _loss_terms, make_optimizer, scene_box
+from nerfbake.teacher.train import draw_batch, loss_terms, make_optimizer, scene_box
+from nerfbake.train.loop import DataParallel
 from nerfbake.train.loop import git_revision, step_generator
 
 
@@ -34,8 +35,8 @@ def time_training(kind: str, ds, store, warmup: int, steps: int) -> dict:
             samples = 0
         gen = step_generator(0, step)
         model.before_step(step, gen)
-        batch = store.sample_uniform_rays(cfg.batch_rays, gen)
-        loss, _, out, _ = _loss_terms(model, batch, cfg, gen, "random", cfg.batch_rays)
+        batch = draw_batch(store, model, cfg, gen, DataParallel())
+        loss, _, out, _ = loss_terms(model, batch, cfg.batch_rays, gen)
         opt.zero_grad()
         loss.backward()
         opt.step()

@@ -141,11 +141,8 @@ def test_eval_and_render_commands(tiny_scene, tmp_path):
     assert (tmp_path / "renders" / "0000.png").is_file()
 
 
-def test_proposal_sampler_on_an_unbounded_capture(tmp_path):
-    """The fox capture (transforms.json, contracted): proposal sampling trains, and the interlevel loss falls."""
-    from conftest import shared_data
-
-    fox = shared_data("fox")
+def test_proposal_sampler_on_an_unbounded_capture(tmp_path, fox):
+    """The fox capture (transforms.json, contracted) trains with proposal sampling and renders sane values."""
     cfg = tiny_config(steps=30)
     cfg.downscale = 16
     cfg.batch_rays = 128

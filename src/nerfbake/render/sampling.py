@@ -14,14 +14,19 @@ def uniform_t(near: torch.Tensor, far: torch.Tensor, num_intervals: int) -> torc
 
 
 def stratified_t(
-    near: torch.Tensor, far: torch.Tensor, num_intervals: int, generator: torch.Generator | None = None
+    near: torch.Tensor, far: torch.Tensor, num_intervals: int, generator: torch.Generator | None = None,
+    u: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """Uniform endpoints with each interior endpoint jittered within its stratum (still sorted)."""
+    """Uniform endpoints with each interior endpoint jittered within its stratum (still sorted).
+
+    The jitter comes from ``u`` (..., S+1) uniforms when given (so callers can draw a whole batch's randomness
+    up front), else from ``generator``."""
     t = uniform_t(near, far, num_intervals)
     mid = 0.5 * (t[..., 1:] + t[..., :-1])
     lo = torch.cat([t[..., :1], mid], dim=-1)
     hi = torch.cat([mid, t[..., -1:]], dim=-1)
-    u = torch.rand(t.shape, generator=generator, device=t.device, dtype=t.dtype)
+    if u is None:
+        u = torch.rand(t.shape, generator=generator, device=t.device, dtype=t.dtype)
     jittered = lo + (hi - lo) * u
     # Keep the ray's extent exactly [near, far].
     return torch.cat([t[..., :1], jittered[..., 1:-1], t[..., -1:]], dim=-1)
@@ -39,11 +44,13 @@ def sample_pdf(
     deterministic: bool = False,
     generator: torch.Generator | None = None,
     eps: float = 1e-5,
+    u: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Draw ``num_samples`` sorted positions (..., num_samples) from the piecewise-constant pdf ``w`` on ``t``.
 
     Inverse transform sampling of the histogram (NeRF's hierarchical sampling). ``deterministic`` uses
-    evenly spaced quantiles instead of random ones (for evaluation).
+    evenly spaced quantiles instead of random ones (for evaluation); ``u`` (..., num_samples) supplies the
+    random quantiles instead of ``generator``.
     """
     w = w + eps
     pdf = w / w.sum(dim=-1, keepdim=True)
@@ -52,7 +59,8 @@ def sample_pdf(
     if deterministic:
         u = torch.linspace(0.0, 1.0, num_samples, device=t.device, dtype=t.dtype).expand(shape)
     else:
-        u = torch.rand(shape, generator=generator, device=t.device, dtype=t.dtype)
+        if u is None:
+            u = torch.rand(shape, generator=generator, device=t.device, dtype=t.dtype)
         u, _ = torch.sort(u, dim=-1)
     u = u.contiguous()
     idx = torch.searchsorted(cdf.contiguous(), u, right=True).clamp(1, cdf.shape[-1] - 1)

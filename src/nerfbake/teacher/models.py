@@ -82,15 +82,22 @@ class HashTeacher(nn.Module):
         if not self.box.contracted and step % self.cfg.grid_update_every == 0:
             self.grid.update(self.field.density, generator)
 
-    def render_rays(self, origins, dirs, background=None, generator: torch.Generator | None = None) -> dict:
+    @property
+    def noise_dims(self) -> int:
+        """Uniform random numbers one training ray consumes (drawn by the trainer for the whole global batch)."""
+        return self.proposal.noise_dims if self.box.contracted else 1
+
+    def render_rays(self, origins, dirs, background=None, noise: torch.Tensor | None = None) -> dict:
+        """``noise`` (R, noise_dims) in [0, 1) makes this a training render (jittered samples); None renders
+        deterministically with the finer evaluation step."""
         if self.box.contracted:
-            return self._render_proposal(origins, dirs, background, generator)
+            return self._render_proposal(origins, dirs, background, noise)
         n = origins.shape[0]
         t_near, t_far = ray_box(origins, dirs, self.grid.box_min, self.grid.box_max)
         t_near = t_near.clamp_min(self.box.near)
         t_far = t_far.clamp_max(self.box.far)
-        offset = torch.rand(n, generator=generator) if generator is not None else None
-        dt = self.dt if generator is not None else self.dt * self.cfg.eval_step_scale
+        offset = None if noise is None else noise[:, 0]
+        dt = self.dt if noise is not None else self.dt * self.cfg.eval_step_scale
         from nerfbake.kernels.march import march_rays
 
         ray_idx, t0, t1 = march_rays(origins, dirs, t_near, t_far, self.grid.occupied, self.grid.box_min,
@@ -103,10 +110,10 @@ class HashTeacher(nn.Module):
         out.update(ray_idx=ray_idx, t0=t0, t1=t1, w=w, num_samples=ray_idx.numel())
         return out
 
-    def _render_proposal(self, origins, dirs, background, generator) -> dict:
+    def _render_proposal(self, origins, dirs, background, noise) -> dict:
         r = origins.shape[0]
         near = torch.full((r,), float(self.box.near))
-        s, t, proposal = self.proposal.sample(origins, dirs, near, generator)
+        s, t, proposal = self.proposal.sample(origins, dirs, near, noise)
         mid = 0.5 * (t[:, 1:] + t[:, :-1])
         pts = origins[:, None] + mid[..., None] * dirs[:, None]
         k = mid.shape[1]
@@ -165,12 +172,17 @@ class NeRFSHTeacher(nn.Module):
         w, _ = weights_from_density(sigma, t)
         return w, composite(w, rgb, background, t), sigma
 
-    def render_rays(self, origins, dirs, background=None, generator: torch.Generator | None = None) -> dict:
+    @property
+    def noise_dims(self) -> int:
+        return self.cfg.coarse_samples + 1 + self.cfg.fine_samples
+
+    def render_rays(self, origins, dirs, background=None, noise: torch.Tensor | None = None) -> dict:
         t_near, t_far = self._near_far(origins, dirs)
         nc = self.cfg.coarse_samples
-        t_c = stratified_t(t_near, t_far, nc, generator) if generator is not None else uniform_t(t_near, t_far, nc)
+        t_c = stratified_t(t_near, t_far, nc, u=noise[:, : nc + 1]) if noise is not None else uniform_t(t_near, t_far, nc)
         w_c, out_c, _ = self._pass(self.coarse, origins, dirs, t_c, background)
-        t_f = sample_pdf(t_c, w_c.detach(), self.cfg.fine_samples, deterministic=generator is None, generator=generator)
+        t_f = sample_pdf(t_c, w_c.detach(), self.cfg.fine_samples, deterministic=noise is None,
+                         u=None if noise is None else noise[:, nc + 1:])
         t_all, _ = torch.sort(torch.cat([t_c, t_f], dim=-1), dim=-1)
         w, out, _ = self._pass(self.fine, origins, dirs, t_all, background)
         r, s = w.shape

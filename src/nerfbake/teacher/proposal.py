@@ -38,11 +38,11 @@ class ProposalDensity(nn.Module):
         super().__init__()
         self.grid = HashGrid(cfg.levels, cfg.log2_table, 16, cfg.max_res)
         self.net = mlp(self.grid.out_dim, 16, 1, 1)
-        self.register_buffer("centre", torch.as_tensor(centre, dtype=torch.float32))
-        self.register_buffer("half", torch.as_tensor(half, dtype=torch.float32))
+        self.register_buffer("box_centre", torch.as_tensor(centre, dtype=torch.float32))
+        self.register_buffer("box_half", torch.as_tensor(half, dtype=torch.float32))
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        u = (contract((x - self.centre) / self.half) + 2.0) / 4.0
+        u = (contract((x - self.box_centre) / self.box_half) + 2.0) / 4.0
         return trunc_exp(self.net(self.grid(u))[:, 0] - 1.0)
 
 
@@ -58,19 +58,26 @@ class ProposalSampler(nn.Module):
         self.cfg = cfg
         self.density = ProposalDensity(cfg, centre, half)
 
-    def sample(self, origins, dirs, near: torch.Tensor, generator: torch.Generator | None):
-        """Final intervals in s and t (R, S+1), plus what the losses need."""
+    @property
+    def noise_dims(self) -> int:
+        return self.cfg.proposal_samples + 1 + self.cfg.final_samples + 1
+
+    def sample(self, origins, dirs, near: torch.Tensor, noise: torch.Tensor | None):
+        """Final intervals in s and t (R, S+1), plus what the losses need. ``noise`` (R, noise_dims) uniforms
+        make it a training draw; None gives the deterministic evaluation placement."""
         cfg = self.cfg
         r = origins.shape[0]
         zeros, ones = torch.zeros(r), torch.ones(r)
-        s_p = stratified_t(zeros, ones, cfg.proposal_samples, generator) if generator is not None \
+        p = cfg.proposal_samples + 1
+        s_p = stratified_t(zeros, ones, cfg.proposal_samples, u=noise[:, :p]) if noise is not None \
             else uniform_t(zeros, ones, cfg.proposal_samples)
         t_p = s_to_t(s_p, near, cfg.far)
         mid = 0.5 * (t_p[:, 1:] + t_p[:, :-1])
         pts = origins[:, None] + mid[..., None] * dirs[:, None]
         sigma = self.density(pts.reshape(-1, 3)).view(r, -1)
         w_p, _ = weights_from_density(sigma, t_p)
-        s_f = sample_pdf(s_p, w_p.detach(), cfg.final_samples + 1, deterministic=generator is None, generator=generator)
+        s_f = sample_pdf(s_p, w_p.detach(), cfg.final_samples + 1, deterministic=noise is None,
+                         u=None if noise is None else noise[:, p:])
         s_f, _ = torch.sort(s_f.detach(), dim=-1)
         return s_f, s_to_t(s_f, near, cfg.far), (s_p, w_p)
 

@@ -78,16 +78,28 @@ def load_teacher(run: Path):
     return model, cfg, meta, state
 
 
-def _loss_terms(model, batch, cfg: TeacherTrainConfig, gen, background_mode: str, total_rays: int, world: int = 1):
+def draw_batch(store: PixelStore, model, cfg: TeacherTrainConfig, gen: torch.Generator, dp: DataParallel) -> dict:
+    """The global batch with all its per-ray randomness (background colour, sample jitter), then this rank's
+    slice: every rank of a data-parallel run, and a single process, see the same rays with the same noise."""
+    n = cfg.batch_rays
+    batch = store.sample_uniform_rays(n, gen)
+    random_bg = cfg.random_background and batch["target"].shape[-1] == 4
+    batch["background"] = torch.rand(n, 3, generator=gen) if random_bg else torch.ones(n, 3)
+    batch["noise"] = torch.rand(n, model.noise_dims, generator=gen)
+    mine = dp.shard(n)
+    return {k: v[mine] for k, v in batch.items()}
+
+
+def loss_terms(model, batch: dict, total_rays: int, gen: torch.Generator, world: int = 1):
+    """Photometric loss of one (rank's share of a) batch, normalised by the global batch size so gradients
+    summed over ranks equal one process's mean; plus the teacher's own regularisers."""
     target = batch["target"]
-    n = target.shape[0]
     if target.shape[-1] == 4:
-        bg = torch.rand(n, 3, generator=gen) if background_mode == "random" else torch.ones(n, 3)
+        bg = batch["background"]
         gt = target[:, :3] * target[:, 3:] + bg * (1 - target[:, 3:])
     else:
         bg, gt = None, target
-    out = model.render_rays(batch["origins"], batch["directions"], bg, generator=gen)
-    # Sums divided by the *global* batch size, so gradients summed over ranks equal one process's mean.
+    out = model.render_rays(batch["origins"], batch["directions"], bg, noise=batch["noise"])
     sq = ((out["rgb"] - gt) ** 2).sum()
     loss = sq / (3 * total_rays)
     terms = {"mse": loss.detach()}
@@ -178,11 +190,8 @@ def train_teacher(data: str | Path, out: str | Path, cfg: TeacherTrainConfig, re
                     lr = log_linear_lr(step, cfg.steps, cfg.lr, cfg.lr_final, cfg.warmup_steps)
                 for g in optimizer.param_groups:
                     g["lr"] = lr
-                batch = store.sample_uniform_rays(cfg.batch_rays, gen)
-                mine = dp.shard(cfg.batch_rays)
-                batch = {k: v[mine] for k, v in batch.items()}
-                bg_mode = "random" if cfg.random_background else "white"
-                loss, terms, render, sq = _loss_terms(model, batch, cfg, gen, bg_mode, cfg.batch_rays, dp.world)
+                batch = draw_batch(store, model, cfg, gen, dp)
+                loss, terms, render, sq = loss_terms(model, batch, cfg.batch_rays, gen, dp.world)
                 optimizer.zero_grad(set_to_none=False)  # keeps the hash table's gradient buffer
                 loss.backward()
                 dp.all_reduce_grads(model.parameters())
