@@ -93,3 +93,17 @@ def _rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
         return 2 * np.outer(axis, axis) - np.eye(3)
     k = np.array([[0, -v[2], v[1]], [v[2], 0, -v[0]], [-v[1], v[0], 0]])
     return np.eye(3) + k + k @ k / (1 + c)
+
+
+def choose(method: str, c2ws: np.ndarray, source, near: float | None = None) -> Normalization:
+    """The normalisation named by ``method`` for these poses (``forward-facing`` needs the nearest bound)."""
+    from nerfbake.data.errors import DatasetError
+
+    if method == "forward-facing" and near is not None:
+        return forward_facing(c2ws, near)
+    if method == "object-centric":
+        return object_centric(c2ws)
+    if method == "none":
+        return Normalization()
+    allowed = "forward-facing, object-centric, none" if near is not None else "object-centric, none"
+    raise DatasetError(f"{source}: unknown normalisation {method!r} ({allowed})")

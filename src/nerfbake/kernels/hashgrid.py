@@ -7,7 +7,6 @@ CPU launches deal the levels out over threads, so threads never write the same t
 """
 from __future__ import annotations
 
-import functools
 
 import torch
 
@@ -21,7 +20,20 @@ PRIME_Z = 805459861
 
 
 @wp.func
-def corner_index(cx: int, cy: int, cz: int, res: int, dense: int, size: int) -> int:
+def corner_weight(c: int, frac: wp.vec3) -> float:
+    """Trilinear weight of corner c (bits: x, y, z offsets) of the cell, at fractional position ``frac``."""
+    wx = wp.where((c & 1) == 1, frac[0], 1.0 - frac[0])
+    wy = wp.where(((c >> 1) & 1) == 1, frac[1], 1.0 - frac[1])
+    wz = wp.where(((c >> 2) & 1) == 1, frac[2], 1.0 - frac[2])
+    return wx * wy * wz
+
+
+@wp.func
+def corner_index(base: wp.vec3i, c: int, res: int, dense: int, size: int) -> int:
+    """Table row of corner c of the cell at ``base``: dense indexing where the level fits, else the spatial hash."""
+    cx = base[0] + (c & 1)
+    cy = base[1] + ((c >> 1) & 1)
+    cz = base[2] + ((c >> 2) & 1)
     if dense == 1:
         return cx + (res + 1) * (cy + (res + 1) * cz)
     h = wp.uint32(cx) ^ (wp.uint32(cy) * wp.uint32(2654435761)) ^ (wp.uint32(cz) * wp.uint32(805459861))
@@ -42,22 +54,14 @@ def hash_forward(
     level = level0 + j * level_stride
     res = resolution[level]
     size = table.shape[1]
-    px = wp.clamp(x[n, 0], 0.0, 1.0) * float(res)
-    py = wp.clamp(x[n, 1], 0.0, 1.0) * float(res)
-    pz = wp.clamp(x[n, 2], 0.0, 1.0) * float(res)
-    ix = wp.min(int(wp.floor(px)), res - 1)
-    iy = wp.min(int(wp.floor(py)), res - 1)
-    iz = wp.min(int(wp.floor(pz)), res - 1)
-    fx = px - float(ix)
-    fy = py - float(iy)
-    fz = pz - float(iz)
+    p = wp.vec3(wp.clamp(x[n, 0], 0.0, 1.0), wp.clamp(x[n, 1], 0.0, 1.0), wp.clamp(x[n, 2], 0.0, 1.0)) * float(res)
+    base = wp.vec3i(wp.min(int(wp.floor(p[0])), res - 1), wp.min(int(wp.floor(p[1])), res - 1),
+                    wp.min(int(wp.floor(p[2])), res - 1))
+    frac = p - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
     acc = wp.vec2(0.0, 0.0)
     for c in range(8):
-        dx = c & 1
-        dy = (c >> 1) & 1
-        dz = (c >> 2) & 1
-        w = wp.where(dx == 1, fx, 1.0 - fx) * wp.where(dy == 1, fy, 1.0 - fy) * wp.where(dz == 1, fz, 1.0 - fz)
-        idx = corner_index(ix + dx, iy + dy, iz + dz, res, dense[level], size)
+        w = corner_weight(c, frac)
+        idx = corner_index(base, c, res, dense[level], size)
         acc = acc + w * table[level, idx]
     out[n, level] = acc
 
@@ -77,21 +81,13 @@ def hash_backward(
     res = resolution[level]
     size = grad_table.shape[1]
     g = grad_out[n, level]
-    px = wp.clamp(x[n, 0], 0.0, 1.0) * float(res)
-    py = wp.clamp(x[n, 1], 0.0, 1.0) * float(res)
-    pz = wp.clamp(x[n, 2], 0.0, 1.0) * float(res)
-    ix = wp.min(int(wp.floor(px)), res - 1)
-    iy = wp.min(int(wp.floor(py)), res - 1)
-    iz = wp.min(int(wp.floor(pz)), res - 1)
-    fx = px - float(ix)
-    fy = py - float(iy)
-    fz = pz - float(iz)
+    p = wp.vec3(wp.clamp(x[n, 0], 0.0, 1.0), wp.clamp(x[n, 1], 0.0, 1.0), wp.clamp(x[n, 2], 0.0, 1.0)) * float(res)
+    base = wp.vec3i(wp.min(int(wp.floor(p[0])), res - 1), wp.min(int(wp.floor(p[1])), res - 1),
+                    wp.min(int(wp.floor(p[2])), res - 1))
+    frac = p - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
     for c in range(8):
-        dx = c & 1
-        dy = (c >> 1) & 1
-        dz = (c >> 2) & 1
-        w = wp.where(dx == 1, fx, 1.0 - fx) * wp.where(dy == 1, fy, 1.0 - fy) * wp.where(dz == 1, fz, 1.0 - fz)
-        idx = corner_index(ix + dx, iy + dy, iz + dz, res, dense[level], size)
+        w = corner_weight(c, frac)
+        idx = corner_index(base, c, res, dense[level], size)
         wp.atomic_add(grad_table, level, idx, w * g)
 
 

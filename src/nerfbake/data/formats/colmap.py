@@ -14,7 +14,7 @@ from nerfbake.data.cameras import Camera, opencv_to_opengl
 from nerfbake.data.dataset import Dataset, Frame, check_downscale, every_nth_split, finish_frames
 from nerfbake.data.errors import DatasetError
 from nerfbake.data.formats.llff import pick_image_folder
-from nerfbake.data.normalization import Normalization, object_centric
+from nerfbake.data.normalization import choose as choose_normalization
 
 # COLMAP parameter order per model -> (fx, fy, cx, cy, distortion dict).
 _PARAMS = {
@@ -83,9 +83,7 @@ def read_colmap(root: Path, downscale: float = 1.0, normalize: str = "object-cen
             base = base.scaled(float(folder.name.split("_")[-1]))
         frames.append(Frame(name=im.name, image_path=path, camera=base))
         c2ws.append(c2w)
-    norm = object_centric(np.stack(c2ws)) if normalize == "object-centric" else Normalization()
-    if normalize not in ("object-centric", "none"):
-        raise DatasetError(f"{root}: unknown normalisation {normalize!r} (object-centric, none)")
+    norm = choose_normalization(normalize, np.stack(c2ws), root)
     frames = finish_frames(frames, norm, load_factor)
     bounds = None
     if rec.num_points3D() > 0:

@@ -15,7 +15,7 @@ from nerfbake.data.cameras import Camera
 from nerfbake.data.dataset import Dataset, Frame, check_downscale, every_nth_split, finish_frames
 from nerfbake.data.errors import DatasetError
 from nerfbake.data.images import IMAGE_EXTENSIONS, image_size
-from nerfbake.data.normalization import Normalization, forward_facing, object_centric
+from nerfbake.data.normalization import choose as choose_normalization
 
 
 def llff_to_opengl(poses: np.ndarray) -> np.ndarray:
@@ -80,14 +80,7 @@ def read_llff(root: Path, downscale: float = 1.0, normalize: str = "forward-faci
         raise DatasetError(f"{paths[0]}: image is {w}x{h}, which is not a scaled copy of the {w_full:.0f}x{h_full:.0f} in {pb_path.name}")
     f = focal_full * folder_scale
     c2ws = llff_to_opengl(poses[:, :, :4])
-    if normalize == "forward-facing":
-        norm = forward_facing(c2ws, float(bounds.min()))
-    elif normalize == "object-centric":
-        norm = object_centric(c2ws)
-    elif normalize == "none":
-        norm = Normalization()
-    else:
-        raise DatasetError(f"{root}: unknown normalisation {normalize!r} (forward-facing, object-centric, none)")
+    norm = choose_normalization(normalize, c2ws, root, near=float(bounds.min()))
     frames = [
         Frame(name=p.name, image_path=p, camera=Camera(c2w, w, h, f, f, w / 2.0, h / 2.0, "SIMPLE_PINHOLE"))
         for p, c2w in zip(paths, c2ws)

@@ -16,7 +16,7 @@ from nerfbake.data.dataset import Dataset, Frame, check_downscale, every_nth_spl
 from nerfbake.data.errors import DatasetError
 from nerfbake.data.formats.jsonio import frames_of, pose_of, read_json, resolve_image
 from nerfbake.data.images import image_size
-from nerfbake.data.normalization import Normalization, object_centric
+from nerfbake.data.normalization import choose as choose_normalization
 
 _INTRINSIC_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h", "camera_angle_x", "camera_angle_y",
                    "k1", "k2", "k3", "k4", "p1", "p2", "camera_model")
@@ -79,12 +79,7 @@ def read_transforms(root: Path, downscale: float = 1.0, normalize: str = "object
         frames.append(Frame(name=str(fr["file_path"]), image_path=image_path,
                             camera=Camera(c2w, cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, cam.model, dict(cam.distortion))))
     c2ws = np.stack([f.camera.c2w for f in frames])
-    if normalize == "object-centric":
-        norm = object_centric(c2ws)
-    elif normalize == "none":
-        norm = Normalization()
-    else:
-        raise DatasetError(f"{root}: unknown normalisation {normalize!r} (object-centric, none)")
+    norm = choose_normalization(normalize, c2ws, root)
     frames = finish_frames(frames, norm, downscale)
     splits = _explicit_splits(meta, frames, path) or every_nth_split([f.name for f in frames])
     extras = {k: meta[k] for k in ("aabb_scale", "scale", "offset") if k in meta}
