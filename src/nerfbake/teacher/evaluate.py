@@ -24,13 +24,14 @@ def render_camera(model, camera: Camera, background=(1.0, 1.0, 1.0), chunk: int 
     cams = CameraBatch([camera])
     pix = pixel_grid(camera.width, camera.height).reshape(-1, 2)
     idx = torch.zeros(pix.shape[0], dtype=torch.long)
-    bg = None if background is None else torch.tensor(background, dtype=torch.float32)
+    dev = next(model.parameters()).device
+    bg = None if background is None else torch.tensor(background, dtype=torch.float32, device=dev)
     parts = {"rgb": [], "depth": [], "acc": []}
     for s in range(0, pix.shape[0], chunk):
         rays = cams.rays(idx[s: s + chunk], pix[s: s + chunk])
-        out = model.render_rays(rays["origins"], rays["directions"], bg)
+        out = model.render_rays(rays["origins"].to(dev), rays["directions"].to(dev), bg)
         for k in parts:
-            parts[k].append(out[k])
+            parts[k].append(out[k].cpu())
     h, w = camera.height, camera.width
     return {k: torch.cat(v).reshape(h, w, -1).squeeze(-1).clamp_min(0).numpy() for k, v in parts.items()}
 

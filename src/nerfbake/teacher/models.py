@@ -112,7 +112,7 @@ class HashTeacher(nn.Module):
 
     def _render_proposal(self, origins, dirs, background, noise) -> dict:
         r = origins.shape[0]
-        near = torch.full((r,), float(self.box.near))
+        near = torch.full((r,), float(self.box.near), device=origins.device)
         s, t, proposal = self.proposal.sample(origins, dirs, near, noise)
         mid = 0.5 * (t[:, 1:] + t[:, :-1])
         pts = origins[:, None] + mid[..., None] * dirs[:, None]
@@ -120,7 +120,7 @@ class HashTeacher(nn.Module):
         sigma, rgb = _shade(self.field(pts.reshape(-1, 3)), dirs[:, None].expand(-1, k, -1).reshape(-1, 3))
         w, _ = weights_from_density(sigma.view(r, k), t)
         out = composite(w, rgb.view(r, k, 3), background, t)
-        out.update(ray_idx=torch.arange(r).repeat_interleave(k), t0=t[:, :-1].reshape(-1), t1=t[:, 1:].reshape(-1),
+        out.update(ray_idx=torch.arange(r, device=origins.device).repeat_interleave(k), t0=t[:, :-1].reshape(-1), t1=t[:, 1:].reshape(-1),
                    w=w.reshape(-1), num_samples=r * (k + self.cfg.proposal.proposal_samples))
         out["_proposal"] = (s, w, proposal)
         return out
@@ -158,7 +158,8 @@ class NeRFSHTeacher(nn.Module):
         pass
 
     def _near_far(self, origins, dirs):
-        t_near, t_far = ray_box(origins, dirs, torch.tensor(self.box.box_min), torch.tensor(self.box.box_max))
+        dev = origins.device
+        t_near, t_far = ray_box(origins, dirs, torch.tensor(self.box.box_min, device=dev), torch.tensor(self.box.box_max, device=dev))
         t_near = t_near.clamp_min(self.box.near)
         t_far = torch.maximum(t_far.clamp_max(self.box.far), t_near + 1e-3)
         return t_near, t_far
@@ -188,7 +189,7 @@ class NeRFSHTeacher(nn.Module):
         r, s = w.shape
         out.update(
             rgb_coarse=out_c["rgb"],
-            ray_idx=torch.arange(r).repeat_interleave(s), t0=t_all[:, :-1].reshape(-1), t1=t_all[:, 1:].reshape(-1),
+            ray_idx=torch.arange(r, device=origins.device).repeat_interleave(s), t0=t_all[:, :-1].reshape(-1), t1=t_all[:, 1:].reshape(-1),
             w=w.reshape(-1), num_samples=r * (s + nc),
         )
         return out
@@ -197,7 +198,7 @@ class NeRFSHTeacher(nn.Module):
         """The sparsity prior on random points in the box, and NeRF's coarse colour loss is added by the trainer."""
         cfg = self.cfg
         lo, hi = torch.tensor(self.box.box_min), torch.tensor(self.box.box_max)
-        pts = lo + (hi - lo) * torch.rand(cfg.sparsity_points, 3, generator=generator)
+        pts = (lo + (hi - lo) * torch.rand(cfg.sparsity_points, 3, generator=generator)).to(self.fine.sigma_head.weight.device)
         sigma = self.fine.density(pts)
         return {"sparsity": cfg.sparsity_weight * (1.0 - torch.exp(-cfg.sparsity_length * sigma).mean())}
 

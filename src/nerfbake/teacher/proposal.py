@@ -67,7 +67,7 @@ class ProposalSampler(nn.Module):
         make it a training draw; None gives the deterministic evaluation placement."""
         cfg = self.cfg
         r = origins.shape[0]
-        zeros, ones = torch.zeros(r), torch.ones(r)
+        zeros, ones = torch.zeros(r, device=origins.device), torch.ones(r, device=origins.device)
         p = cfg.proposal_samples + 1
         s_p = stratified_t(zeros, ones, cfg.proposal_samples, u=noise[:, :p]) if noise is not None \
             else uniform_t(zeros, ones, cfg.proposal_samples)

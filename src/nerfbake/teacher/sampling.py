@@ -47,8 +47,10 @@ class OccupancyGrid(nn.Module):
             idx = torch.arange(n)
         else:
             idx = torch.randperm(n, generator=generator)[: int(n * self.fraction)]
-        jitter = torch.rand(idx.numel(), 3, generator=generator)
-        new = torch.empty(idx.numel())
+        jitter = torch.rand(idx.numel(), 3, generator=generator)  # drawn on the CPU: the same on every device
+        dev = flat.device
+        idx, jitter = idx.to(dev), jitter.to(dev)
+        new = torch.empty(idx.numel(), device=dev)
         for s in range(0, idx.numel(), chunk):
             new[s: s + chunk] = density_fn(self.cell_centres(idx[s: s + chunk], jitter[s: s + chunk])).float()
         # Decay every cell (instant-ngp), then raise the re-evaluated ones to their new density.

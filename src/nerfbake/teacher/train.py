@@ -16,7 +16,7 @@ from nerfbake.data.pixels import PixelStore
 from nerfbake.progress import console, progress_bar
 from nerfbake.teacher.models import HashTeacherConfig, NeRFSHTeacherConfig, SceneBox, build_teacher
 from nerfbake.teacher.presets import TeacherTrainConfig
-from nerfbake.train.loop import (DataParallel, Interrupt, RateMeter, git_revision, load_checkpoint, log_linear_lr,
+from nerfbake.train.loop import (DataParallel, Interrupt, default_device, RateMeter, git_revision, load_checkpoint, log_linear_lr,
                                  save_checkpoint, step_decay_lr, step_generator, to_jsonable, write_json_atomic)
 from nerfbake.fields.hash_sh import HashSHConfig
 from nerfbake.fields.nerf_sh import NeRFSHConfig
@@ -47,6 +47,7 @@ def config_from_dict(d: dict) -> TeacherTrainConfig:
 
 
 def make_optimizer(model, cfg: TeacherTrainConfig):
+    """Adam (instant-ngp's betas, eps 1e-15), fused, with weight decay on the MLPs only."""
     grid_params = [p for n, p in model.named_parameters() if n.endswith("grid.table")]
     other = [p for n, p in model.named_parameters() if not n.endswith("grid.table")]
     groups = [{"params": other, "weight_decay": cfg.weight_decay}]
@@ -74,7 +75,7 @@ def load_teacher(run: Path):
     except (RuntimeError, KeyError) as exc:
         first = str(exc).splitlines()[0]
         raise ValueError(f"{run / CHECKPOINT}: does not match {cfg_path} ({first}); retrain or restore the pair") from None
-    model.eval()
+    model.to(default_device()).eval()
     return model, cfg, meta, state
 
 
@@ -87,7 +88,7 @@ def draw_batch(store: PixelStore, model, cfg: TeacherTrainConfig, gen: torch.Gen
     batch["background"] = torch.rand(n, 3, generator=gen) if random_bg else torch.ones(n, 3)
     batch["noise"] = torch.rand(n, model.noise_dims, generator=gen)
     mine = dp.shard(n)
-    return {k: v[mine] for k, v in batch.items()}
+    return {k: v[mine].to(dp.device) for k, v in batch.items()}
 
 
 def loss_terms(model, batch: dict, total_rays: int, gen: torch.Generator, world: int = 1):
@@ -147,13 +148,13 @@ def train_teacher(data: str | Path, out: str | Path, cfg: TeacherTrainConfig, re
         existing = json.loads((out / CONFIG).read_text())
         if existing.get("complete"):
             raise ValueError(f"{out}: already holds a finished teacher; pass --resume to continue or choose another --out")
-    model = build_teacher(cfg.field, cfg.model_config, box)
+    model = build_teacher(cfg.field, cfg.model_config, box).to(dp.device)
     optimizer = make_optimizer(model, cfg)
     start = 0
     if resume and ckpt_path.is_file():
         state = load_checkpoint(ckpt_path)
         model.load_state_dict(state["model"])
-        optimizer.load_state_dict(state["optimizer"])
+        optimizer.load_state_dict(state["optimizer"])  # moves the moments onto the parameters' device
         start = int(state["step"])
         if dp.is_main:
             console.print(f"resuming {out} at step {start}")

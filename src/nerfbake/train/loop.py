@@ -103,15 +103,26 @@ class Interrupt:
         return False
 
 
+def default_device() -> torch.device:
+    """This process's device: the GPU of its local rank when CUDA is available (``NERFBAKE_DEVICE=cpu`` forces the
+    CPU), else the CPU."""
+    if torch.cuda.is_available() and os.environ.get("NERFBAKE_DEVICE", "") != "cpu":
+        return torch.device("cuda", int(os.environ.get("LOCAL_RANK", "0")))
+    return torch.device("cpu")
+
+
 class DataParallel:
-    """Rank and world size under ``torchrun``; one process otherwise."""
+    """Rank, world size and device (:func:`default_device`) under ``torchrun``; one process otherwise."""
 
     def __init__(self):
         self.world = int(os.environ.get("WORLD_SIZE", "1"))
         self.rank = int(os.environ.get("RANK", "0"))
+        self.device = default_device()
+        use_cuda = self.device.type == "cuda"
+        if use_cuda:
+            torch.cuda.set_device(self.device)
         if self.world > 1 and not dist.is_initialized():
-            backend = "nccl" if torch.cuda.is_available() else "gloo"
-            dist.init_process_group(backend)
+            dist.init_process_group("nccl" if use_cuda else "gloo")
 
     @property
     def is_main(self) -> bool:
@@ -138,7 +149,7 @@ class DataParallel:
     def all_reduce_sum(self, value: float) -> float:
         if self.world == 1:
             return value
-        t = torch.tensor([value], dtype=torch.float64)
+        t = torch.tensor([value], dtype=torch.float64, device=self.device)
         dist.all_reduce(t)
         return float(t)
 
