@@ -108,7 +108,7 @@ def every_nth_split(names: list[str], every: int = 8) -> dict[str, list[int]]:
 
 
 def finish_frames(
-    frames: list[Frame], normalization: Normalization, downscale: float, native_sizes: bool = True
+    frames: list[Frame], normalization: Normalization, downscale: float
 ) -> list[Frame]:
     """Apply normalisation and downscale to every frame's camera (``load_size`` records the decode size)."""
     out = []
@@ -118,7 +118,7 @@ def finish_frames(
         if downscale != 1:
             cam = cam.scaled(downscale)
             load_size = (cam.width, cam.height)
-        out.append(replace(f, camera=cam, load_size=load_size if native_sizes else f.load_size))
+        out.append(replace(f, camera=cam, load_size=load_size))
     return out
 
 

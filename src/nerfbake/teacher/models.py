@@ -9,6 +9,7 @@ from torch import nn
 
 from nerfbake.fields.hash_sh import HashSHConfig, HashSHField
 from nerfbake.fields.nerf_sh import NeRFSHConfig, NeRFSHField
+from nerfbake.kernels.march import march_rays
 from nerfbake.render.packed import packed_composite, packed_weights
 from nerfbake.render.quadrature import composite, weights_from_density
 from nerfbake.render.sampling import sample_pdf, stratified_t, uniform_t
@@ -98,8 +99,6 @@ class HashTeacher(nn.Module):
         t_far = t_far.clamp_max(self.box.far)
         offset = None if noise is None else noise[:, 0]
         dt = self.dt if noise is not None else self.dt * self.cfg.eval_step_scale
-        from nerfbake.kernels.march import march_rays
-
         ray_idx, t0, t1 = march_rays(origins, dirs, t_near, t_far, self.grid.occupied, self.grid.box_min,
                                      self.grid.box_max, dt, offset)
         mid = 0.5 * (t0 + t1)

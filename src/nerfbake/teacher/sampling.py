@@ -40,7 +40,6 @@ class OccupancyGrid(nn.Module):
 
     @torch.no_grad()
     def update(self, density_fn, generator: torch.Generator, chunk: int = 1 << 18) -> None:
-        g = self.resolution
         flat = self.density.view(-1)
         n = flat.numel()
         if (flat < 0).all():
@@ -60,7 +59,6 @@ class OccupancyGrid(nn.Module):
         evaluated = flat >= 0
         thresh = min(self.sigma_thresh, float(flat[evaluated].mean()))
         self.occupied.copy_((self.density > thresh) | (self.density < 0))
-        del g
 
     @property
     def occupancy_fraction(self) -> float:

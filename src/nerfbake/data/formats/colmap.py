@@ -69,8 +69,8 @@ def read_colmap(root: Path, downscale: float = 1.0, normalize: str = "object-cen
     for im in images:
         if not im.has_pose:
             continue
-        fx, fy, cx, cy, dist, model = colmap_camera(rec.cameras[im.camera_id], sparse)
         cam_obj = rec.cameras[im.camera_id]
+        fx, fy, cx, cy, dist, model = colmap_camera(cam_obj, sparse)
         w2c = np.eye(4)
         w2c[:3, :4] = im.cam_from_world().matrix() if callable(im.cam_from_world) else im.cam_from_world.matrix()
         c2w = opencv_to_opengl(np.linalg.inv(w2c))
