@@ -49,3 +49,11 @@ def parallel_map(fn, chunks):
     if len(chunks) <= 1:
         return [fn(c) for c in chunks]
     return list(_pool().map(fn, chunks))
+
+
+def launch_chunks(n: int, device: str, parts: int | None = None) -> list[tuple[int, int]]:
+    """Split ``n`` work items into contiguous [start, end) ranges: one on a GPU, ~2 per CPU thread on the CPU."""
+    if parts is None:
+        parts = 1 if device != "cpu" or n < 4096 else cpu_threads() * 2
+    bounds = [round(i * n / parts) for i in range(parts + 1)]
+    return [(bounds[i], bounds[i + 1]) for i in range(parts) if bounds[i + 1] > bounds[i]]

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import torch
 
-from nerfbake.kernels import cpu_threads, device_of, ensure_loaded, parallel_map, warp
+from nerfbake.kernels import device_of, ensure_loaded, launch_chunks, parallel_map, warp
 
 wp = warp()
 wp.set_module_options({"enable_backward": False})
@@ -70,12 +70,6 @@ def march_write(
         steps += 1
 
 
-def _chunks(n: int, device: str) -> list[tuple[int, int]]:
-    parts = 1 if device != "cpu" or n < 4096 else cpu_threads() * 2
-    bounds = [round(i * n / parts) for i in range(parts + 1)]
-    return [(bounds[i], bounds[i + 1]) for i in range(parts) if bounds[i + 1] > bounds[i]]
-
-
 def march_rays(
     origins: torch.Tensor, dirs: torch.Tensor, t_near: torch.Tensor, t_far: torch.Tensor, grid: torch.Tensor,
     box_min: torch.Tensor, box_max: torch.Tensor, dt: float, offset: torch.Tensor | None = None, max_steps: int = 4096,
@@ -95,7 +89,7 @@ def march_rays(
     ]
     counts = torch.zeros(n, dtype=torch.int32, device=origins.device)
     wc = wp.from_torch(counts)
-    chunks = _chunks(n, dev)
+    chunks = launch_chunks(n, dev)
     ensure_loaded(march_count, dev)
     parallel_map(lambda c: wp.launch(march_count, dim=c[1] - c[0], inputs=[*common, c[0], wc], device=dev), chunks)
     csum = torch.cumsum(counts, 0, dtype=torch.int64)

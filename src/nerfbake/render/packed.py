@@ -25,7 +25,7 @@ def packed_weights(sigma: torch.Tensor, t0: torch.Tensor, t1: torch.Tensor, ray_
         is_first[1:] = ray_idx[1:] != ray_idx[:-1]
         starts = torch.nonzero(is_first).squeeze(-1)
         first[ray_idx[starts]] = starts
-    trans = torch.exp((excl - excl[first[ray_idx]]).float()) if ray_idx.numel() else excl.float()
+    trans = (torch.exp(excl - excl[first[ray_idx]]) if ray_idx.numel() else excl).to(alpha.dtype)
     return trans * alpha, alpha
 
 

@@ -1,0 +1,166 @@
+"""Rendering a tree: options (the authors' viewer's knobs), the Warp kernel front end, and a vectorised torch
+reference that follows the same traversal step by step (used to test the kernel and as autograd's ground truth).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from nerfbake.data.cameras import Camera
+from nerfbake.data.rays import camera_rays
+from nerfbake.octree.tree import Octree
+from nerfbake.render.packed import packed_composite, packed_weights
+from nerfbake.render.sh import sh_basis
+
+
+@dataclass
+class RenderOptions:
+    """Defaults are volrend's high-quality setting; training uses ``training()`` (no skipping, no early stop)."""
+
+    step_size: float = 1e-4  # tree units past each leaf exit
+    sigma_thresh: float = 1e-2
+    stop_thresh: float = 1e-2
+    background: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    bbox_min: tuple[float, float, float] = (0.0, 0.0, 0.0)  # slicing box in tree coordinates
+    bbox_max: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    basis_min: int = 0  # SH component range [basis_min, basis_max); None = all the tree holds
+    basis_max: int | None = None
+
+    @classmethod
+    def training(cls, **kw) -> "RenderOptions":
+        return cls(sigma_thresh=0.0, stop_thresh=0.0, **kw)
+
+    def basis_range(self, num_basis: int) -> tuple[int, int]:
+        hi = num_basis if self.basis_max is None else self.basis_max
+        if not 0 <= self.basis_min < hi <= num_basis:
+            raise ValueError(f"SH component range [{self.basis_min}, {hi}) is outside the {num_basis} basis functions this tree holds")
+        return self.basis_min, hi
+
+
+def render_rays(tree: Octree, origins: torch.Tensor, dirs: torch.Tensor, opts: RenderOptions | None = None) -> dict:
+    """Kernel renderer: rgb (R, 3), depth (R,), alpha (R,) for world rays with unit directions."""
+    from nerfbake.kernels.octree import render_forward
+
+    opts = opts or RenderOptions()
+    opts.basis_range(tree.num_basis)
+    return render_forward(tree, origins.to(tree.device), dirs.to(tree.device), opts)
+
+
+def render_camera(tree: Octree, camera: Camera, opts: RenderOptions | None = None, chunk: int = 1 << 18) -> dict[str, np.ndarray]:
+    """Whole image: rgb (H, W, 3), depth (H, W), alpha (H, W)."""
+    rays = camera_rays(camera)
+    o, d = rays["origins"].reshape(-1, 3), rays["directions"].reshape(-1, 3)
+    parts = [render_rays(tree, o[s: s + chunk], d[s: s + chunk], opts) for s in range(0, o.shape[0], chunk)]
+    h, w = camera.height, camera.width
+    return {k: torch.cat([p[k] for p in parts]).reshape(h, w, -1).squeeze(-1).cpu().numpy() for k in parts[0]}
+
+
+def _ray_setup(tree: Octree, origins, dirs, opts: RenderOptions):
+    ot = tree.offset.to(origins) + tree.invradius.to(origins) * origins
+    ds = tree.invradius.to(dirs) * dirs
+    scale = ds.norm(dim=-1)
+    dt = ds / scale[:, None]
+    lo = torch.tensor(opts.bbox_min, dtype=origins.dtype)
+    hi = torch.tensor(opts.bbox_max, dtype=origins.dtype)
+    inv = 1.0 / dt
+    ta, tb = (lo - ot) * inv, (hi - ot) * inv
+    zero = dt == 0
+    outside = zero & ((ot < lo) | (ot > hi))
+    t0 = torch.where(zero, torch.full_like(ta, -1e9), torch.minimum(ta, tb)).amax(-1).clamp_min(0.0)
+    t1 = torch.where(zero, torch.full_like(ta, 1e9), torch.maximum(ta, tb)).amin(-1).clamp_max(1e9)
+    t1 = torch.where(outside.any(-1), torch.full_like(t1, -1.0), t1)
+    return ot, dt, 1.0 / scale, t0, t1
+
+
+@torch.no_grad()
+def trace_reference(tree: Octree, origins: torch.Tensor, dirs: torch.Tensor, opts: RenderOptions) -> dict:
+    """Samples each ray takes, as packed lists: ray index, flat leaf index, start t and length (world units).
+    Transmittance decides early stopping exactly as in the kernel."""
+    ot, dt, to_world, t, t_end = _ray_setup(tree, origins, dirs, opts)
+    flat = tree.data.reshape(-1, tree.data_dim)
+    rays = torch.arange(origins.shape[0])
+    T = torch.ones(origins.shape[0], dtype=origins.dtype)
+    stopped = torch.zeros(origins.shape[0], dtype=torch.bool)
+    out = {"ray": [], "slot": [], "t": [], "delta": []}
+    active = t < t_end
+    while bool(active.any()):
+        a = rays[active]
+        p = ot[a] + t[a, None] * dt[a]
+        slot, cube, q = tree_leaf_local(tree, p)
+        delta = leaf_exit_reference(q, dt[a], cube)
+        sigma = flat[slot, -1].to(origins.dtype)
+        keep = sigma > opts.sigma_thresh
+        dw = delta * to_world[a]
+        for k, v in zip(("ray", "slot", "t", "delta"), (a, slot, t[a] * to_world[a], dw)):
+            out[k].append(v[keep])
+        T[a] = torch.where(keep, T[a] * torch.exp(-dw * sigma), T[a])
+        now_stopped = keep & (T[a] < opts.stop_thresh)
+        stopped[a] |= now_stopped
+        t[a] = t[a] + delta + opts.step_size
+        active = (t < t_end) & ~stopped
+    cat = {k: torch.cat(v) if v else torch.zeros(0) for k, v in out.items()}
+    order = torch.argsort(cat["ray"], stable=True)
+    res = {k: v[order] for k, v in cat.items()}
+    res["stopped"] = stopped
+    return res
+
+
+def tree_leaf_local(tree: Octree, p: torch.Tensor):
+    """Flat leaf index, cells per axis at its depth, and leaf-local coordinates, computed as the kernel does."""
+    child = tree.child.reshape(-1)
+    q = p.clamp(0.0, 0.9999999)
+    node = torch.zeros(p.shape[0], dtype=torch.long)
+    slot = node.clone()
+    cube = torch.ones(p.shape[0], dtype=p.dtype)
+    local = q.clone()
+    active = torch.ones(p.shape[0], dtype=torch.bool)
+    for _ in range(tree.depth_limit + 2):
+        q = q * 2.0
+        idx = q.floor().clamp(0, 1)
+        q = q - idx
+        idx = idx.long()
+        s = node * 8 + idx[:, 0] * 4 + idx[:, 1] * 2 + idx[:, 2]
+        slot = torch.where(active, s, slot)
+        cube = torch.where(active, cube * 2.0, cube)
+        local = torch.where(active[:, None], q, local)
+        ptr = child[slot].long()
+        active = active & (ptr != 0)
+        if not bool(active.any()):
+            break
+        node = torch.where(active, node + ptr, node)
+    return slot, cube, local
+
+
+def leaf_exit_reference(q: torch.Tensor, d: torch.Tensor, cube: torch.Tensor) -> torch.Tensor:
+    big = torch.full_like(q, 1e9)
+    t = torch.where(d > 0, (1.0 - q) / d, torch.where(d < 0, -q / d, big))
+    return t.amin(-1).clamp_max(1e9) / cube
+
+
+def render_reference(tree: Octree, origins: torch.Tensor, dirs: torch.Tensor, opts: RenderOptions | None = None,
+                     data: torch.Tensor | None = None) -> dict:
+    """Differentiable (w.r.t. ``data``, default ``tree.data``) torch renderer with the kernel's semantics."""
+    opts = opts or RenderOptions()
+    lo, hi = opts.basis_range(tree.num_basis)
+    data = tree.data if data is None else data
+    s = trace_reference(tree, origins, dirs, opts)
+    n = origins.shape[0]
+    flat = data.reshape(-1, tree.data_dim)[s["slot"]]
+    sigma = flat[:, -1]
+    nb = tree.num_basis
+    basis = sh_basis(4, dirs[s["ray"]].to(flat))[:, :nb]
+    basis = torch.where((torch.arange(nb) >= lo) & (torch.arange(nb) < hi), basis, torch.zeros_like(basis))
+    coef = flat[:, :-1].reshape(-1, 3, nb)
+    color = torch.sigmoid((coef * basis[:, None, :]).sum(-1))
+    t0 = s["t"].to(flat)
+    w, _ = packed_weights(sigma, t0, t0 + s["delta"].to(flat), s["ray"], n)
+    out = packed_composite(w, color, t0, t0 + s["delta"].to(flat), s["ray"], n)
+    rgb, acc, depth = out["rgb"], out["acc"], out["depth"]
+    T = 1.0 - acc
+    bg = torch.tensor(opts.background, dtype=flat.dtype)
+    stopped = s["stopped"][:, None]
+    rgb = torch.where(stopped, rgb / (1.0 - T[:, None]).clamp_min(1e-12), rgb + T[:, None] * bg)
+    alpha = torch.where(s["stopped"], torch.ones_like(acc), acc)
+    return {"rgb": rgb, "depth": depth, "alpha": alpha}
