@@ -34,3 +34,11 @@ def fern() -> Path:
 @pytest.fixture(scope="session")
 def fox() -> Path:
     return shared_data("fox")
+
+
+@pytest.fixture(scope="session")
+def tiny_scene(tmp_path_factory) -> Path:
+    """A 32x32 Mitsuba scene (6 training views): enough for teachers and trees to learn something in seconds."""
+    from nerfbake.data.synth import SynthConfig, render_dataset
+
+    return render_dataset(SynthConfig("objects", 32, 32, views=6, spp=4, seed=0), tmp_path_factory.mktemp("tiny") / "scene")

@@ -153,6 +153,131 @@ def cmd_teacher_render(args) -> int:
     return 0
 
 
+def _octree_opts(args):
+    from nerfbake.octree.render import RenderOptions
+
+    opts = RenderOptions()
+    if getattr(args, "step_size", None) is not None:
+        opts.step_size = args.step_size
+    if getattr(args, "sh_range", None):
+        lo, hi = (int(v) for v in args.sh_range.split(","))
+        opts.basis_min, opts.basis_max = lo, hi
+    if getattr(args, "slice", None):
+        v = [float(x) for x in args.slice.split(",")]
+        if len(v) != 6:
+            raise ValueError("--slice takes 6 numbers: xmin,ymin,zmin,xmax,ymax,zmax in tree coordinates [0, 1]")
+        opts.bbox_min, opts.bbox_max = tuple(v[:3]), tuple(v[3:])
+    return opts
+
+
+def cmd_octree_build(args) -> int:
+    from dataclasses import replace
+
+    from nerfbake.octree.build import build_octree, build_preset
+
+    cfg = build_preset(args.preset)
+    for name in ("grid", "weight_thresh", "samples_per_leaf", "ray_stride"):
+        if getattr(args, name) is not None:
+            cfg = replace(cfg, **{name: getattr(args, name)})
+    if args.no_autoscale:
+        cfg = replace(cfg, autoscale=False)
+    cfg.depth  # validates --grid before any work
+    summary = build_octree(args.teacher, args.out, cfg)
+    _print_json(summary) if args.json else print(
+        f"wrote {summary['tree']}: {summary['num_leaves']:,} leaves ({summary['kept_voxels']:,} kept voxels at "
+        f"{cfg.grid}^3), {summary['file_bytes'] / 1e6:.1f} MB in {summary['seconds']:.0f} s")
+    return 0
+
+
+def cmd_octree_optimize(args) -> int:
+    from dataclasses import replace
+
+    from nerfbake.octree.optimize import optimize_preset, optimize_tree
+
+    cfg = optimize_preset(args.preset)
+    for name in ("epochs", "lr", "val_every", "downscale"):
+        if getattr(args, name) is not None:
+            cfg = replace(cfg, **{name: getattr(args, name)})
+    if args.continue_on_decrease:
+        cfg = replace(cfg, continue_on_decrease=True)
+    summary = optimize_tree(args.tree, args.data, args.out, cfg)
+    _print_json(summary) if args.json else print(
+        f"wrote {summary['tree']}: best validation PSNR {summary['best_val_psnr']:.2f} dB at epoch {summary['best_epoch']}")
+    return 0
+
+
+def cmd_octree_compress(args) -> int:
+    from nerfbake.octree.compress import compress_tree
+
+    summary = compress_tree(args.tree, args.out, bits=args.bits, retain=args.retain, sigma_thresh=args.sigma_thresh)
+    _print_json(summary) if args.json else print(
+        f"wrote {summary['tree']}: {summary['file_bytes'] / 1e6:.2f} MB ({summary['ratio']:.1f}x smaller)")
+    return 0
+
+
+def cmd_octree_eval(args) -> int:
+    from nerfbake.octree.evaluate import evaluate_tree
+
+    result = evaluate_tree(args.tree, args.data, args.split, args.max_views, args.downscale, args.repeats,
+                           _octree_opts(args), write=not args.no_images)
+    if args.json:
+        _print_json(result)
+    else:
+        print(f"{result['split']}: PSNR {result['psnr']:.2f}  SSIM {result['ssim']:.4f}  "
+              f"LPIPS-{result['lpips_net']} {result['lpips_' + result['lpips_net']]:.4f}  "
+              f"{result['ms_per_frame']:.1f} ms/frame ({result['fps']:.1f} FPS, {result['device']})")
+    return 0
+
+
+def cmd_octree_info(args) -> int:
+    from nerfbake.octree.io import load_tree, volrend_problems
+
+    tree = load_tree(args.tree)
+    lo, hi = tree.world_bounds
+    leaves = tree.leaves()
+    info = {
+        "tree": str(args.tree), "data_format": tree.data_format, "data_dim": tree.data_dim, "sh_degree": tree.sh_degree,
+        "num_nodes": tree.num_nodes, "num_leaves": tree.num_leaves, "depth_limit": tree.depth_limit,
+        "leaves_per_depth": {int(d): int((leaves["depth"] == d).sum()) for d in leaves["depth"].unique()},
+        "nonzero_sigma_leaves": int((tree.data.reshape(-1, tree.data_dim)[leaves["index"], -1] > 0).sum()),
+        "box_min": lo.tolist(), "box_max": hi.tolist(), "file_bytes": Path(args.tree).stat().st_size,
+        "volrend_problems": volrend_problems(args.tree),
+    }
+    if args.json:
+        _print_json(info)
+    else:
+        for k, v in info.items():
+            print(f"{k:22s} {v}")
+    return 0
+
+
+def cmd_octree_render(args) -> int:
+    import imageio.v3 as iio
+    import numpy as np
+
+    from nerfbake.eval.views import to_png
+    from nerfbake.octree.io import load_tree
+    from nerfbake.octree.render import render_camera
+    from nerfbake.progress import progress_bar
+    from nerfbake.teacher.evaluate import read_pose_file
+    from nerfbake.train.loop import default_device
+
+    tree = load_tree(args.tree, default_device())
+    cams = read_pose_file(Path(args.pose_file))
+    opts = _octree_opts(args)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    with progress_bar("octree render", len(cams), unit="view") as advance:
+        for i, cam in enumerate(cams):
+            img = render_camera(tree, cam, opts)
+            iio.imwrite(out / f"{i:04d}.png", to_png(img["rgb"]))
+            if args.depth:
+                np.save(out / f"{i:04d}_depth.npy", img["depth"].astype(np.float32))
+            advance()
+    print(f"wrote {len(cams)} images to {out}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="nerfbake", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -211,6 +336,64 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--pose-file", required=True)
     tr.add_argument("--out", required=True)
     tr.set_defaults(func=cmd_teacher_render)
+
+    octree = sub.add_parser("octree", help="PlenOctrees: build, fine-tune, compress, evaluate, render").add_subparsers(
+        dest="octree_command", required=True)
+    ob = octree.add_parser("build", help="extract a tree from a trained teacher")
+    ob.add_argument("--teacher", required=True, help="teacher run folder")
+    ob.add_argument("--out", required=True, help="tree .npz to write")
+    ob.add_argument("--preset", choices=["cpu-small", "paper"], default="cpu-small")
+    ob.add_argument("--grid", type=int, help="dense grid side (power of two; 512 in the paper)")
+    ob.add_argument("--weight-thresh", type=float, help="keep voxels with this compositing weight on some training ray")
+    ob.add_argument("--samples-per-leaf", type=int, help="teacher samples averaged per leaf (256 paper, 8 fast)")
+    ob.add_argument("--ray-stride", type=int, help="use every n-th pixel row/column of the training views for the mask")
+    ob.add_argument("--no-autoscale", action="store_true", help="keep the teacher's box instead of fitting one")
+    ob.add_argument("--json", action="store_true")
+    ob.set_defaults(func=cmd_octree_build)
+    oo = octree.add_parser("optimize", help="fine-tune a tree on the training images (analytic gradients, SGD)")
+    oo.add_argument("--tree", required=True)
+    oo.add_argument("--data", required=True)
+    oo.add_argument("--out", required=True)
+    oo.add_argument("--preset", choices=["cpu-small", "paper"], default="cpu-small")
+    oo.add_argument("--epochs", type=int)
+    oo.add_argument("--lr", type=float)
+    oo.add_argument("--val-every", type=int)
+    oo.add_argument("--downscale", type=float)
+    oo.add_argument("--continue-on-decrease", action="store_true", help="do not stop when validation PSNR drops")
+    oo.add_argument("--json", action="store_true")
+    oo.set_defaults(func=cmd_octree_optimize)
+    oc = octree.add_parser("compress", help="median-cut quantise SH into 2^bits codebooks + DEFLATE (web trees)")
+    oc.add_argument("--tree", required=True)
+    oc.add_argument("--out", required=True)
+    oc.add_argument("--bits", type=int, default=16, help="codebook size 2^bits (volrend needs 16)")
+    oc.add_argument("--retain", type=int, default=0, help="keep the first R SH bases unquantised")
+    oc.add_argument("--sigma-thresh", type=float, default=2.0, help="drop leaves with sigma at or below this")
+    oc.add_argument("--json", action="store_true")
+    oc.set_defaults(func=cmd_octree_compress)
+    oe = octree.add_parser("eval", help="test-split PSNR/SSIM/LPIPS and ms/frame")
+    oe.add_argument("--tree", required=True)
+    oe.add_argument("--data", required=True)
+    oe.add_argument("--split", default="test")
+    oe.add_argument("--max-views", type=int)
+    oe.add_argument("--downscale", type=float, default=1.0)
+    oe.add_argument("--repeats", type=int, default=3, help="timed passes over the views after a warm-up pass")
+    oe.add_argument("--step-size", type=float, help="tree units past each leaf exit (1e-4 default)")
+    oe.add_argument("--no-images", action="store_true")
+    oe.add_argument("--json", action="store_true")
+    oe.set_defaults(func=cmd_octree_eval)
+    oi = octree.add_parser("info", help="summarise a tree file (and check it against volrend's loader rules)")
+    oi.add_argument("tree")
+    oi.add_argument("--json", action="store_true")
+    oi.set_defaults(func=cmd_octree_info)
+    orr = octree.add_parser("render", help="render camera poses from a transforms-style JSON")
+    orr.add_argument("--tree", required=True)
+    orr.add_argument("--pose-file", required=True)
+    orr.add_argument("--out", required=True)
+    orr.add_argument("--sh-range", help="SH components lo,hi (half-open) to sum, e.g. 0,1 for the diffuse part")
+    orr.add_argument("--slice", help="slicing box xmin,ymin,zmin,xmax,ymax,zmax in tree coordinates")
+    orr.add_argument("--step-size", type=float)
+    orr.add_argument("--depth", action="store_true", help="also write expected depth as NNNN_depth.npy")
+    orr.set_defaults(func=cmd_octree_render)
 
     demo = sub.add_parser("demo", help="run the pipeline on the built-in synthetic scene (CPU preset)")
     demo.add_argument("--out", default="outputs/demo")

@@ -9,30 +9,12 @@ from pathlib import Path
 import pytest
 import torch
 
-from nerfbake.data.synth import SynthConfig, render_dataset
 from nerfbake.fields.hash_sh import HashSHConfig
-from nerfbake.fields.nerf_sh import NeRFSHConfig
 from nerfbake.render.quadrature import composite, weights_from_density
 from nerfbake.render.sh import eval_sh_color
-from nerfbake.teacher.models import HashTeacherConfig, NeRFSHTeacherConfig
-from nerfbake.teacher.presets import TeacherTrainConfig
+from nerfbake.teacher.models import HashTeacherConfig
 from nerfbake.teacher.train import load_teacher, train_teacher
-
-
-@pytest.fixture(scope="session")
-def tiny_scene(tmp_path_factory):
-    return render_dataset(SynthConfig("objects", 32, 32, views=6, spp=4, seed=0), tmp_path_factory.mktemp("tiny") / "scene")
-
-
-def tiny_config(field="hash", steps=6):
-    return TeacherTrainConfig(
-        field=field, preset="test", steps=steps, batch_rays=256, lr=1e-2, lr_final=1e-3, warmup_steps=2,
-        checkpoint_every=3,
-        hash=HashTeacherConfig(HashSHConfig(levels=4, log2_table=12, max_res=64, hidden=16, sh_degree=2),
-                               grid_resolution=32, render_steps=128, grid_update_every=2),
-        nerf_sh=NeRFSHTeacherConfig(NeRFSHConfig(num_freqs=4, depth=2, width=32, skip=1, sh_degree=2),
-                                    coarse_samples=8, fine_samples=8, sparsity_points=64),
-    )
+from tests.helpers import tiny_config
 
 
 def params(run):
