@@ -5,6 +5,7 @@ releases the GIL while a kernel runs) along an axis whose work items write disjo
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 import os
 from concurrent.futures import ThreadPoolExecutor
@@ -15,8 +16,40 @@ def warp():
     import warp as wp
 
     wp.config.log_level = 30  # warnings only: no banner on every command
-    wp.init()
+    if _has_cuda_driver():
+        wp.init()
+    else:
+        with _quiet_stderr():  # Warp's native init prints a driver warning on every CPU-only machine
+            wp.init()
     return wp
+
+
+def _has_cuda_driver() -> bool:
+    import ctypes
+
+    for name in ("libcuda.so.1", "libcuda.so", "nvcuda.dll"):
+        try:
+            ctypes.CDLL(name)
+            return True
+        except OSError:
+            continue
+    return False
+
+
+@contextlib.contextmanager
+def _quiet_stderr():
+    import sys
+
+    sys.stderr.flush()
+    saved = os.dup(2)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 2)
+        yield
+    finally:
+        os.dup2(saved, 2)
+        os.close(saved)
+        os.close(devnull)
 
 
 def device_of(tensor) -> str:

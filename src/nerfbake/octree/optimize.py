@@ -39,7 +39,7 @@ def optimize_preset(name: str) -> OptimizeConfig:
     if name == "paper":
         return OptimizeConfig()
     if name == "cpu-small":
-        return OptimizeConfig(epochs=4, val_every=1, val_views=5)
+        return OptimizeConfig(epochs=3, lr=2e6, val_every=1, val_views=5)  # lr: 400x400 images, 256^3 leaves (lego)
     raise ValueError(f"unknown preset {name!r}; choose paper or cpu-small")
 
 
