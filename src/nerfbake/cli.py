@@ -128,6 +128,8 @@ def cmd_teacher_train(args) -> int:
     if args.downscale is not None:
         cfg.downscale = args.downscale
     cfg.seed = args.seed
+    if args.tensorboard:
+        cfg.tensorboard = True
     train_teacher(args.data, args.out, cfg, resume=args.resume)
     return 0
 
@@ -209,7 +211,8 @@ def cmd_octree_optimize(args) -> int:
 def cmd_octree_compress(args) -> int:
     from nerfbake.octree.compress import compress_tree
 
-    summary = compress_tree(args.tree, args.out, bits=args.bits, retain=args.retain, sigma_thresh=args.sigma_thresh)
+    summary = compress_tree(args.tree, args.out, bits=args.bits, retain=args.retain, sigma_thresh=args.sigma_thresh,
+                            sh_degree=args.sh_degree, min_extent=args.min_extent)
     _print_json(summary) if args.json else print(
         f"wrote {summary['tree']}: {summary['file_bytes'] / 1e6:.2f} MB ({summary['ratio']:.1f}x smaller)")
     return 0
@@ -278,6 +281,50 @@ def cmd_octree_render(args) -> int:
     return 0
 
 
+def cmd_smerf_info(args) -> int:
+    from nerfbake.smerf.assets import SceneAssets, read_params
+
+    scene = SceneAssets.open(args.assets)
+    subs = []
+    for params_idx, sm in enumerate(scene.params["params_to_sm"]):
+        folder = scene.root / f"sm_{sm:03d}"
+        p = read_params(folder)
+        subs.append({"params_idx": params_idx, "submodel": sm, "folder": str(folder),
+                     "disk_bytes": sum(f.stat().st_size for f in folder.iterdir() if f.is_file()),
+                     **{k: p.get(k) for k in ("triplane_resolution", "sparse_grid_resolution", "atlas_width", "atlas_height",
+                                              "atlas_depth", "submodel_scale")}})
+    info = {"assets": str(scene.root), "num_submodels": len(subs), "grid": round(2.0 / scene.params["submodel_voxel_size"]),
+            "disk_bytes": sum(s["disk_bytes"] for s in subs), "peak_submodel_bytes": max(s["disk_bytes"] for s in subs),
+            "deferred_mlp_grid": list(scene.mlp["ResampleDense_0/kernel"].shape[1:4]), "submodels": subs}
+    if args.json:
+        _print_json(info)
+    else:
+        print(f"{info['assets']}: {info['num_submodels']} submodel(s) on a {info['grid']}^3 grid, "
+              f"{info['disk_bytes'] / 1e6:.2f} MB on disk (largest submodel {info['peak_submodel_bytes'] / 1e6:.2f} MB)")
+    return 0
+
+
+def cmd_smerf_render(args) -> int:
+    import imageio.v3 as iio
+
+    from nerfbake.eval.views import to_png
+    from nerfbake.progress import progress_bar
+    from nerfbake.smerf.assets import SceneAssets
+    from nerfbake.smerf.baked_render import read_test_frames, render_baked
+
+    scene = SceneAssets.open(args.assets)
+    frames = args.frames or str(scene.root / f"sm_{scene.params['params_to_sm'][0]:03d}" / "test_frames.json")
+    cams = read_test_frames(frames, args.width, args.height)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    with progress_bar("smerf render", len(cams), unit="view") as advance:
+        for i, cam in enumerate(cams):
+            iio.imwrite(out / f"{i:04d}.png", to_png(render_baked(scene, cam, step_mult=args.step_mult)))
+            advance()
+    print(f"wrote {len(cams)} images to {out}")
+    return 0
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="nerfbake", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -323,6 +370,7 @@ def build_parser() -> argparse.ArgumentParser:
     tt.add_argument("--seed", type=int, default=0)
     tt.add_argument("--resume", action="store_true", help="continue from RUN/checkpoint.pt")
     tt.add_argument("--config", help="training config JSON (e.g. another run's config.json) instead of a preset")
+    tt.add_argument("--tensorboard", action="store_true", help="also write TensorBoard scalars to RUN/tensorboard")
     tt.set_defaults(func=cmd_teacher_train)
     te = teacher.add_parser("eval", help="render a split and print PSNR/SSIM/LPIPS")
     te.add_argument("--run", required=True)
@@ -368,6 +416,9 @@ def build_parser() -> argparse.ArgumentParser:
     oc.add_argument("--bits", type=int, default=16, help="codebook size 2^bits (volrend needs 16)")
     oc.add_argument("--retain", type=int, default=0, help="keep the first R SH bases unquantised")
     oc.add_argument("--sigma-thresh", type=float, default=2.0, help="drop leaves with sigma at or below this")
+    oc.add_argument("--min-extent", type=float, default=2.0 ** -9,
+                    help="do not split codebook cells narrower than this (0 = the authors' always-split median cut)")
+    oc.add_argument("--sh-degree", type=int, help="keep SH bands up to this degree (smaller files; default: all)")
     oc.add_argument("--json", action="store_true")
     oc.set_defaults(func=cmd_octree_compress)
     oe = octree.add_parser("eval", help="test-split PSNR/SSIM/LPIPS and ms/frame")
@@ -394,6 +445,21 @@ def build_parser() -> argparse.ArgumentParser:
     orr.add_argument("--step-size", type=float)
     orr.add_argument("--depth", action="store_true", help="also write expected depth as NNNN_depth.npy")
     orr.set_defaults(func=cmd_octree_render)
+
+    smerf = sub.add_parser("smerf", help="SMERF baked scenes: inspect and render asset directories").add_subparsers(
+        dest="smerf_command", required=True)
+    si = smerf.add_parser("info", help="summarise a baked asset directory (ours or the official export)")
+    si.add_argument("assets", help="folder holding sm_XXX/ (or one sm_XXX folder)")
+    si.add_argument("--json", action="store_true")
+    si.set_defaults(func=cmd_smerf_info)
+    sr = smerf.add_parser("render", help="render test_frames.json views as the official viewer's shader does")
+    sr.add_argument("--assets", required=True)
+    sr.add_argument("--out", required=True)
+    sr.add_argument("--frames", help="a test_frames.json (default: the first submodel's)")
+    sr.add_argument("--width", type=int, default=800)
+    sr.add_argument("--height", type=int, default=500)
+    sr.add_argument("--step-mult", type=float, default=1.0, help="the viewer's stepMult (finer steps)")
+    sr.set_defaults(func=cmd_smerf_render)
 
     demo = sub.add_parser("demo", help="run the pipeline on the built-in synthetic scene (CPU preset)")
     demo.add_argument("--out", default="outputs/demo")

@@ -218,6 +218,10 @@ def test_median_cut_codebook():
     few = x[:7]
     book, idx = median_cut(few, 4)
     assert np.allclose(book[idx], few, atol=1e-6)
+    clustered = np.concatenate([x[:100] * 1e-4, x[100:200] + 5])  # one tight cluster, one wide one
+    book, idx = median_cut(clustered, 8, min_extent=1e-2)
+    assert len(np.unique(idx[:100])) == 1 and len(np.unique(idx[100:])) > 50
+    assert np.abs(book[idx[:100]] - clustered[:100]).max() < 1e-2
 
 
 def test_compress_follows_the_web_layout(tmp_path):
@@ -238,6 +242,13 @@ def test_compress_follows_the_web_layout(tmp_path):
     assert info["leaves_kept"] == int(alive.sum())
     compress_tree(tmp_path / "raw.npz", tmp_path / "c8.npz", bits=8)
     assert any("65536" in p for p in volrend_problems(tmp_path / "c8.npz"))
+    compress_tree(tmp_path / "raw.npz", tmp_path / "sh4.npz", sh_degree=1)
+    low = load_tree(tmp_path / "sh4.npz")
+    assert low.data_format == "SH4" and volrend_problems(tmp_path / "sh4.npz") == []
+    keep = [c * 16 + k for c in range(3) for k in range(4)] + [48]
+    assert torch.allclose(low.data[alive], tree.data[alive][:, keep], atol=2e-2)
+    with pytest.raises(ValueError, match="outside 0..3"):
+        compress_tree(tmp_path / "raw.npz", tmp_path / "x.npz", sh_degree=4)
 
 
 # --- build and fine-tune from a teacher --------------------------------------------------------------------------------

@@ -173,3 +173,16 @@ def test_ctrl_c_saves_a_checkpoint_and_resume_finishes(tiny_scene, tmp_path):
     assert json.loads((run / "config.json").read_text())["complete"] is True
     again = subprocess.run(cmd, capture_output=True, text=True)  # a finished run is not overwritten by accident
     assert again.returncode == 2 and "already holds a finished teacher" in again.stderr
+
+
+def test_tensorboard_scalars(tiny_scene, tmp_path):
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    cfg = replace(tiny_config(steps=25), tensorboard=True, val_every=25)
+    run = train_teacher(tiny_scene, tmp_path / "run", cfg)
+    acc = EventAccumulator(str(run / "tensorboard"))
+    acc.Reload()
+    tags = acc.Tags()["scalars"]
+    assert {"train/psnr", "train/loss", "train/rays_per_s", "val/psnr"} <= set(tags)
+    logged = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines()]
+    assert acc.Scalars("train/psnr")[-1].value == pytest.approx(logged[0]["psnr"], rel=1e-6)

@@ -233,17 +233,25 @@ def render_forward(tree, origins: torch.Tensor, dirs: torch.Tensor, opts) -> dic
     return {"rgb": rgb, "depth": depth, "alpha": alpha}
 
 
-def render_backward(tree, origins, dirs, opts, rgb_out: torch.Tensor, grad_rgb: torch.Tensor) -> torch.Tensor:
-    """d loss / d tree.data (same shape) given d loss / d rgb for rays rendered with ``stop_thresh`` 0.
+def backward_buffers(tree) -> list[torch.Tensor]:
+    """Gradient accumulators for :func:`render_backward`: one per CPU thread (Warp's CPU atomics are plain
+    adds), one on a GPU. Allocate once and pass to every call: each is the size of the leaf data."""
+    parts = 1 if tree.device.type != "cpu" else cpu_threads()
+    return [torch.zeros(tree.num_nodes * 8, tree.data_dim, device=tree.device) for _ in range(parts)]
 
-    CPU atomics in Warp are plain adds, so each CPU thread accumulates into its own buffer (summed after)."""
+
+def render_backward(tree, origins, dirs, opts, rgb_out: torch.Tensor, grad_rgb: torch.Tensor,
+                    buffers: list[torch.Tensor] | None = None) -> torch.Tensor:
+    """d loss / d tree.data (same shape) given d loss / d rgb for rays rendered with ``stop_thresh`` 0.
+    The result is a view of ``buffers[0]`` (overwritten by the next call)."""
     n = origins.shape[0]
     dev = device_of(origins)
+    bufs = buffers if buffers is not None else backward_buffers(tree)
+    for b in bufs:
+        b.zero_()
     common = _common(tree, origins, dirs, opts) + [wp.vec3(*opts.background)]
     outs = [wp.from_torch(rgb_out.contiguous().float(), dtype=wp.vec3), wp.from_torch(grad_rgb.contiguous().float(), dtype=wp.vec3)]
-    shape = (-1, tree.data_dim)
-    chunks = launch_chunks(n, dev, 1 if dev != "cpu" else cpu_threads())
-    bufs = [torch.zeros_like(tree.data).reshape(shape) for _ in chunks]
+    chunks = launch_chunks(n, dev, len(bufs))
     ensure_loaded(octree_backward, dev)
     if n:
         parallel_map(lambda cb: wp.launch(octree_backward, dim=cb[0][1] - cb[0][0],
@@ -252,5 +260,4 @@ def render_backward(tree, origins, dirs, opts, rgb_out: torch.Tensor, grad_rgb: 
     grad = bufs[0]
     for b in bufs[1:]:
         grad += b
-    return grad.reshape(tree.data.shape)
-
+    return grad.view(tree.data.shape)

@@ -16,9 +16,11 @@ from nerfbake.octree.io import load_tree, write_npz
 from nerfbake.progress import progress_bar
 
 
-def median_cut(colors: np.ndarray, bits: int) -> tuple[np.ndarray, np.ndarray]:
+def median_cut(colors: np.ndarray, bits: int, min_extent: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """Codebook (2^bits, 3) and per-colour index (M,): split every cell at the median of its widest channel,
-    ``bits`` times; entries are cell means (unused entries 0)."""
+    ``bits`` times; entries are cell means (unused entries 0). Cells whose widest extent is already below
+    ``min_extent`` are not split: their colours share one entry, which costs nothing visible and lets DEFLATE
+    shrink the index maps (the authors' quantiser always splits, spending 16 bits on near-identical values)."""
     m = colors.shape[0]
     x = colors.astype(np.float64)
     order = np.arange(m)
@@ -40,7 +42,7 @@ def median_cut(colors: np.ndarray, bits: int) -> tuple[np.ndarray, np.ndarray]:
         # one argsort orders every cell at once: cell id plus the value scaled into [0, 0.5)
         rank = seg + 0.5 * (key - lo[seg, axis[seg]]) / (span[seg] + 1e-300) * (1 - 1e-9)
         order = order[np.argsort(rank, kind="stable")]
-        mids = starts + sizes // 2
+        mids = np.where(span < min_extent, ends, starts + sizes // 2)
         bounds = np.append(np.stack([starts, mids], 1).reshape(-1), m)
     starts, ends = bounds[:-1], bounds[1:]
     sizes = ends - starts
@@ -53,12 +55,21 @@ def median_cut(colors: np.ndarray, bits: int) -> tuple[np.ndarray, np.ndarray]:
     return codebook.astype(np.float32), index
 
 
-def compress_tree(tree_path: str | Path, out: str | Path, bits: int = 16, retain: int = 0, sigma_thresh: float = 2.0) -> dict:
+MIN_EXTENT = 2.0 ** -9  # about float16's spacing at 1: finer splits would quantise rounding noise
+
+
+def compress_tree(tree_path: str | Path, out: str | Path, bits: int = 16, retain: int = 0, sigma_thresh: float = 2.0,
+                  sh_degree: int | None = None, min_extent: float = MIN_EXTENT) -> dict:
+    """``sh_degree`` below the tree's drops the higher SH bands first (not in the authors' script: the volrend
+    author's advice for trees too large for WebGL is SH9)."""
     start = time.time()
     if not 1 <= bits <= 16:
         raise ValueError(f"--bits must be in 1..16 (uint16 indices), got {bits}; volrend needs 16")
     tree = load_tree(tree_path)
-    nb, n = tree.num_basis, tree.num_nodes
+    n = tree.num_nodes
+    if sh_degree is not None and not 0 <= sh_degree <= tree.sh_degree:
+        raise ValueError(f"--sh-degree {sh_degree} is outside 0..{tree.sh_degree} (the degree this tree holds)")
+    nb = tree.num_basis if sh_degree is None else (sh_degree + 1) ** 2
     if not 0 <= retain <= nb:
         raise ValueError(f"--retain {retain} is outside 0..{nb} (the tree has {nb} SH bases)")
     data = tree.data.numpy()
@@ -66,22 +77,22 @@ def compress_tree(tree_path: str | Path, out: str | Path, bits: int = 16, retain
     alive = (tree.child.numpy() == 0) & (sigma > sigma_thresh)
     if not alive.any():
         raise ValueError(f"{tree_path}: no leaf has sigma > {sigma_thresh}; lower --sigma-thresh")
-    rgb = data[..., :-1].reshape(n, 2, 2, 2, 3, nb)  # [..., channel, basis]
+    rgb = data[..., :-1].reshape(n, 2, 2, 2, 3, tree.num_basis)[..., :nb]  # [..., channel, basis]
     live = rgb[alive]  # (M, 3, B)
     quant_colors = np.zeros((nb - retain, 2 ** bits, 3), np.float16)
     quant_map = np.zeros((nb - retain, n, 2, 2, 2), np.uint16)
     with progress_bar("octree compress", nb - retain, unit="basis") as advance:
         for j in range(retain, nb):
-            book, idx = median_cut(live[:, :, j], bits)
+            book, idx = median_cut(live[:, :, j], bits, min_extent)
             quant_colors[j - retain] = book.astype(np.float16)
             quant_map[j - retain][alive] = idx.astype(np.uint16)
             advance()
     arrays = {
-        "data_dim": np.array(tree.data_dim, dtype=np.int64),
+        "data_dim": np.array(3 * nb + 1, dtype=np.int64),
         "child": tree.child.numpy().astype(np.int32),
         "invradius3": tree.invradius.numpy().astype(np.float32),
         "offset": tree.offset.numpy().astype(np.float32),
-        "data_format": np.array(tree.data_format),
+        "data_format": np.array(f"SH{nb}"),
         "quant_colors": quant_colors,
         "quant_map": quant_map,
         "sigma": np.where(alive, sigma, 0).astype(np.float16),
@@ -93,4 +104,5 @@ def compress_tree(tree_path: str | Path, out: str | Path, bits: int = 16, retain
     raw = Path(tree_path).stat().st_size
     return {"tree": str(path), "source": str(tree_path), "file_bytes": path.stat().st_size, "source_bytes": raw,
             "ratio": raw / path.stat().st_size, "bits": bits, "retain": retain, "sigma_thresh": sigma_thresh,
+            "data_format": f"SH{nb}", "min_extent": min_extent,
             "leaves_kept": int(alive.sum()), "seconds": time.time() - start}

@@ -17,7 +17,7 @@ import torch
 from nerfbake.data.formats import load_dataset
 from nerfbake.data.rays import camera_rays
 from nerfbake.eval.views import pick_views
-from nerfbake.kernels.octree import render_backward, render_forward
+from nerfbake.kernels.octree import backward_buffers, render_backward, render_forward
 from nerfbake.octree.io import load_tree, save_tree
 from nerfbake.octree.render import RenderOptions, render_camera
 from nerfbake.progress import progress_bar
@@ -43,7 +43,7 @@ def optimize_preset(name: str) -> OptimizeConfig:
     raise ValueError(f"unknown preset {name!r}; choose paper or cpu-small")
 
 
-def image_step(tree, camera, target: torch.Tensor, opts: RenderOptions, lr: float) -> float:
+def image_step(tree, camera, target: torch.Tensor, opts: RenderOptions, lr: float, buffers=None) -> float:
     """One SGD step on one image; returns its MSE before the step."""
     rays = camera_rays(camera)
     o = rays["origins"].reshape(-1, 3).to(tree.device)
@@ -52,8 +52,8 @@ def image_step(tree, camera, target: torch.Tensor, opts: RenderOptions, lr: floa
     diff = rgb - target
     mse = float((diff * diff).mean())
     grad_rgb = diff * (2.0 / diff.numel())
-    grad = render_backward(tree, o, d, opts, rgb, grad_rgb)
-    tree.data.sub_(lr * grad)
+    grad = render_backward(tree, o, d, opts, rgb, grad_rgb, buffers)
+    tree.data.add_(grad, alpha=-lr)
     return mse
 
 
@@ -83,6 +83,7 @@ def optimize_tree(tree_path: str | Path, data: str | Path, out: str | Path, cfg:
     history = [{"epoch": 0, "val_psnr": best_psnr}]
     best = tree.data.clone()
     best_epoch = 0
+    buffers = backward_buffers(tree)
     for epoch in range(1, cfg.epochs + 1):
         order = torch.randperm(len(train), generator=gen).tolist()
         losses = []
@@ -90,7 +91,7 @@ def optimize_tree(tree_path: str | Path, data: str | Path, out: str | Path, cfg:
             for j in order:
                 i = train[j]
                 target = torch.from_numpy(ds.image(i)[..., :3].reshape(-1, 3).copy()).to(device)
-                losses.append(image_step(tree, ds.frames[i].camera, target, opts, cfg.lr))
+                losses.append(image_step(tree, ds.frames[i].camera, target, opts, cfg.lr, buffers))
                 advance()
         entry = {"epoch": epoch, "train_psnr": float(-10 * np.log10(np.mean(losses)))}
         if epoch % cfg.val_every == 0 or epoch == cfg.epochs:

@@ -27,6 +27,7 @@ class TeacherTrainConfig:
     checkpoint_every: int = 500
     val_every: int = 1000
     val_rays: int = 4096
+    tensorboard: bool = False  # also write scalars as TensorBoard events to RUN/tensorboard
     hash: HashTeacherConfig = dc_field(default_factory=HashTeacherConfig)
     nerf_sh: NeRFSHTeacherConfig = dc_field(default_factory=NeRFSHTeacherConfig)
 

@@ -189,3 +189,12 @@ class RateMeter:
         if dt > 10:
             self.t0, self.n = time.perf_counter(), 0
         return rate
+
+
+def tensorboard_writer(run: Path):
+    """A TensorBoard event writer in ``run/tensorboard`` (``tensorboard --logdir run``)."""
+    try:
+        from torch.utils.tensorboard import SummaryWriter
+    except ImportError as exc:
+        raise ValueError(f"--tensorboard needs the tensorboard package ({exc}); pip install tensorboard") from None
+    return SummaryWriter(str(Path(run) / "tensorboard"))
