@@ -283,6 +283,7 @@ def cmd_octree_render(args) -> int:
 
 def cmd_smerf_info(args) -> int:
     from nerfbake.smerf.assets import SceneAssets, read_params
+    from nerfbake.smerf.validate import asset_problems
 
     scene = SceneAssets.open(args.assets)
     subs = []
@@ -295,7 +296,8 @@ def cmd_smerf_info(args) -> int:
                                               "atlas_depth", "submodel_scale")}})
     info = {"assets": str(scene.root), "num_submodels": len(subs), "grid": round(2.0 / scene.params["submodel_voxel_size"]),
             "disk_bytes": sum(s["disk_bytes"] for s in subs), "peak_submodel_bytes": max(s["disk_bytes"] for s in subs),
-            "deferred_mlp_grid": list(scene.mlp["ResampleDense_0/kernel"].shape[1:4]), "submodels": subs}
+            "deferred_mlp_grid": list(scene.mlp["ResampleDense_0/kernel"].shape[1:4]), "submodels": subs,
+            "format_problems": asset_problems(scene.root)}
     if args.json:
         _print_json(info)
     else:

@@ -91,7 +91,34 @@ def test_smerf_info_and_render_commands(tiny_assets, tmp_path, capsys):
     assert main(["smerf", "info", str(tiny_assets), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
     assert info["num_submodels"] == 1 and info["disk_bytes"] > 0 and info["submodels"][0]["triplane_resolution"] == 256
+    assert info["format_problems"] == []
     assert main(["smerf", "render", "--assets", str(tiny_assets), "--out", str(tmp_path / "r"), "--width", "80",
                  "--height", "50"]) == 0
     img = iio.imread(tmp_path / "r" / "0000.png")
     assert img.shape == (50, 80, 3) and img.max() > 100
+
+
+def test_format_rules_accept_the_official_export_and_name_each_violation(tiny_assets, tmp_path):
+    from nerfbake.smerf.validate import asset_problems
+
+    assert asset_problems(tiny_assets) == []
+    broken = tmp_path / "scene"
+    shutil.copytree(tiny_assets, broken)
+    sm = broken / "sm_000"
+    for f in sm.iterdir():
+        f.chmod(0o644)
+    params = json.loads((sm / "scene_params.json").read_text())
+    params["triplane_voxel_size"] = 0.01
+    del params["exposure_range"]
+    (sm / "scene_params.json").write_text(json.dumps(params))
+    (sm / "distance_grid_16_000.raw.gz").unlink()
+    idx = gzip.decompress((sm / "sparse_grid_block_indices.raw.gz").read_bytes())
+    arr = np.frombuffer(idx, np.uint8).copy()
+    live = np.nonzero(arr.reshape(-1, 3)[:, 0] < 255)[0][0]
+    arr.reshape(-1, 3)[live] = [200, 0, 0]  # outside a 288x9x9 atlas
+    (sm / "sparse_grid_block_indices.raw.gz").write_bytes(gzip.compress(arr.tobytes()))
+    problems = "\n".join(asset_problems(broken))
+    assert "missing keys exposure_range" in problems
+    assert "triplane_voxel_size = 0.01, expected 0.015625" in problems
+    assert "distance_grid_16_000.raw.gz: missing" in problems
+    assert "points outside the 288x9x9 atlas" in problems
