@@ -1,0 +1,71 @@
+"""The deferred appearance MLP of SMERF (paper eq. 7): 3 dense layers (ELU, sigmoid output) whose kernels and
+biases live on a P^3 lattice per submodel and are trilinearly interpolated at the camera position, so view-dependent
+colour can vary across a large scene. Arrays are ``[submodel, z, y, x, ...]`` over the training frame, exactly what
+``deferred_mlp.json`` stores and the viewer (and :func:`nerfbake.smerf.baked_render.deferred_mlp_weights`) reads."""
+from __future__ import annotations
+
+import math
+
+import torch
+from torch import nn
+
+
+class GridMLP(nn.Module):
+    def __init__(self, num_submodels: int, in_dim: int = 41, width: int = 16, grid: int = 5, activation: str = "elu",
+                 generator: torch.Generator | None = None):
+        super().__init__()
+        self.grid, self.activation = grid, activation
+        dims = [in_dim, width, width, 3]
+        self.kernels = nn.ParameterList()
+        self.biases = nn.ParameterList()
+        for a, b in zip(dims[:-1], dims[1:]):
+            w = torch.randn(a, b, generator=generator) / math.sqrt(a)  # LeCun normal, as flax's Dense
+            self.kernels.append(nn.Parameter(w.expand(num_submodels, grid, grid, grid, a, b).clone()))
+            self.biases.append(nn.Parameter(torch.zeros(num_submodels, grid, grid, grid, b)))
+
+    def corners(self, pos: torch.Tensor):
+        """Lattice corner indices (R, 8, 3) as (x, y, z) and trilinear weights (R, 8) at positions in [-1, 1]^3."""
+        g = (pos + 1) / 2 * self.grid - 0.5
+        lo = torch.floor(g)
+        f = g - lo
+        off = torch.tensor([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)], dtype=pos.dtype, device=pos.device)
+        idx = (lo[:, None, :] + off[None]).clamp(0, self.grid - 1).long()
+        w = torch.where(off[None] == 1, f[:, None, :], 1 - f[:, None, :]).prod(-1)
+        return idx, w
+
+    def weights_at(self, params_idx: torch.Tensor, pos: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
+        """Per ray: the interpolated (kernel (R, in, out), bias (R, out)) of every layer."""
+        idx, w = self.corners(pos)
+        n = params_idx[:, None].expand(-1, 8)
+        out = []
+        for kern, bias in zip(self.kernels, self.biases):
+            k = kern[n, idx[..., 2], idx[..., 1], idx[..., 0]]  # (R, 8, in, out)
+            b = bias[n, idx[..., 2], idx[..., 1], idx[..., 0]]
+            out.append(((w[..., None, None] * k).sum(1), (w[..., None] * b).sum(1)))
+        return out
+
+    def forward(self, x: torch.Tensor, params_idx: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
+        h = x
+        layers = self.weights_at(params_idx, pos)
+        for i, (k, b) in enumerate(layers):
+            h = torch.einsum("ri,rio->ro", h, k) + b
+            if i < len(layers) - 1:
+                h = nn.functional.elu(h) if self.activation == "elu" else torch.relu(h)
+        return torch.sigmoid(h)
+
+    def tv_loss(self) -> torch.Tensor:
+        """Mean squared difference between lattice neighbours along each axis (the authors' L2 TV, weight 0.1)."""
+        total = 0.0
+        for p in list(self.kernels) + list(self.biases):
+            for axis in (1, 2, 3):
+                total = total + (p.diff(dim=axis) ** 2).mean()
+        return total
+
+    def export(self) -> dict:
+        """``deferred_mlp.json`` content: {"ResampleDense_i/kernel": {"shape", "data"}, ...}."""
+        out = {}
+        for i, (k, b) in enumerate(zip(self.kernels, self.biases)):
+            for name, t in (("kernel", k), ("bias", b)):
+                t = t.detach().cpu()
+                out[f"ResampleDense_{i}/{name}"] = {"shape": list(t.shape), "data": t.reshape(-1).tolist()}
+        return out

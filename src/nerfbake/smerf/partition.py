@@ -1,0 +1,123 @@
+"""SMERF's camera-based partition (paper section 3, eq. 6): the training cameras are normalised into [-1, 1]^3,
+which is cut into K^3 cells; a submodel exists only where training cameras are, and every camera (training or
+test) is rendered by the submodel whose cell holds it (the inf-norm nearest centre). Inside a submodel, points are
+expressed as ``submodel_scale * (p - centre)`` before the contraction, with ``submodel_scale = K * factor``
+(2.5 for K = 1, 0.8 for K > 1, as the authors' configs). The linear index is (i * K + j) * K + k, x slowest,
+in the training frame, matching the viewer's ``sm_to_params`` lookup.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+
+class PartitionError(ValueError):
+    pass
+
+
+@dataclass
+class Partition:
+    k: int
+    centre: np.ndarray  # normalisation: p_cube = (p - centre) * scale, cameras inside [-1, 1]^3
+    scale: float
+    sm_to_params: list[int]  # length K^3, -1 where no training camera is
+    scale_factor: float
+
+    @property
+    def submodel_scale(self) -> float:
+        return self.k * self.scale_factor
+
+    @property
+    def params_to_sm(self) -> list[int]:
+        return [i for i, p in enumerate(self.sm_to_params) if p >= 0]
+
+    @property
+    def num_alive(self) -> int:
+        return len(self.params_to_sm)
+
+    @classmethod
+    def from_cameras(cls, origins: np.ndarray, k: int, margin: float = 0.05, scale_factor: float | None = None) -> "Partition":
+        """Normalise camera origins (N, 3) into [-1 + margin, 1 - margin]^3 (uniform scale) and mark alive cells."""
+        if k < 1:
+            raise PartitionError(f"K must be >= 1, got {k}")
+        origins = np.asarray(origins, np.float64)
+        if origins.ndim != 2 or origins.shape[0] == 0:
+            raise PartitionError("no training cameras to partition")
+        lo, hi = origins.min(0), origins.max(0)
+        centre = (lo + hi) / 2
+        half = float((hi - lo).max()) / 2
+        scale = (1.0 - margin) / half if half > 0 else 1.0
+        part = cls(k, centre, scale, [-1] * k ** 3, scale_factor if scale_factor is not None else (2.5 if k == 1 else 0.8))
+        alive = sorted(set(part.cell_index(part.normalize(origins)).tolist()))
+        part.sm_to_params = [alive.index(i) if i in alive else -1 for i in range(k ** 3)]
+        return part
+
+    def normalize(self, points: np.ndarray) -> np.ndarray:
+        return (np.asarray(points, np.float64) - self.centre) * self.scale
+
+    def cell_index(self, cube_points: np.ndarray, strict: bool = False) -> np.ndarray:
+        """Linear cell index of points in the [-1, 1]^3 frame (clamped to the cube unless ``strict``)."""
+        p = np.asarray(cube_points, np.float64)
+        if strict and (np.abs(p) > 1.0 + 1e-9).any():
+            bad = int(np.argmax(np.abs(p).max(-1)))
+            raise PartitionError(f"camera {bad} at {p[bad].round(3).tolist()} lies outside the partition cube [-1, 1]^3; "
+                                 "the partition is built from the training cameras, so keep evaluation cameras inside "
+                                 "their range")
+        ijk = np.clip(np.floor((p + 1) / 2 * self.k), 0, self.k - 1).astype(int)
+        return (ijk[..., 0] * self.k + ijk[..., 1]) * self.k + ijk[..., 2]
+
+    def assign(self, world_origins: np.ndarray, strict: bool = False) -> np.ndarray:
+        """Params index of the submodel that renders each camera: its own cell if alive, else the alive cell
+        whose centre is nearest in the inf-norm (eq. 6)."""
+        p = self.normalize(world_origins)
+        cell = self.cell_index(p, strict)
+        out = np.array([self.sm_to_params[c] for c in np.atleast_1d(cell)])
+        dead = out < 0
+        if dead.any():
+            centres = np.stack([self.cell_centre(i) for i in self.params_to_sm])
+            d = np.abs(np.atleast_2d(p)[dead][:, None, :] - centres[None]).max(-1)
+            out[dead] = d.argmin(1)
+        return out
+
+    def cell_centre(self, sm: int) -> np.ndarray:
+        k = self.k
+        ijk = np.array([sm // (k * k), (sm // k) % k, sm % k], np.float64)
+        return (ijk + 0.5) * (2.0 / k) - 1.0
+
+    def to_submodel(self, world_points: torch.Tensor, params_idx: int) -> torch.Tensor:
+        """World points -> the submodel's frame (before the contraction)."""
+        c = self.cell_centre(self.params_to_sm[params_idx])
+        centre = torch.as_tensor(self.centre, dtype=world_points.dtype, device=world_points.device)
+        cc = torch.as_tensor(c, dtype=world_points.dtype, device=world_points.device)
+        return ((world_points - centre) * self.scale - cc) * self.submodel_scale
+
+    def neighbours(self, params_idx: int) -> list[int]:
+        """Alive submodels whose cells touch this one's (26-neighbourhood), for ray reassignment and consistency."""
+        k, sm = self.k, self.params_to_sm[params_idx]
+        i, j, l = sm // (k * k), (sm // k) % k, sm % k
+        out = []
+        for di in (-1, 0, 1):
+            for dj in (-1, 0, 1):
+                for dl in (-1, 0, 1):
+                    a, b, c = i + di, j + dj, l + dl
+                    if (di, dj, dl) != (0, 0, 0) and 0 <= a < k and 0 <= b < k and 0 <= c < k:
+                        p = self.sm_to_params[(a * k + b) * k + c]
+                        if p >= 0:
+                            out.append(p)
+        return out
+
+    def mlp_position(self, world_points: np.ndarray, params_idx: int) -> np.ndarray:
+        """Where the deferred-MLP lattice of a submodel is sampled: the camera relative to the cell centre, in
+        cell half-widths ([-1, 1]^3 over the cell; the viewer's ``(cam - centre) * K``)."""
+        c = self.cell_centre(self.params_to_sm[params_idx])
+        return (self.normalize(world_points) - c) * self.k
+
+    def to_json(self) -> dict:
+        return {"k": self.k, "centre": self.centre.tolist(), "scale": self.scale, "sm_to_params": self.sm_to_params,
+                "scale_factor": self.scale_factor}
+
+    @classmethod
+    def from_json(cls, d: dict) -> "Partition":
+        return cls(d["k"], np.asarray(d["centre"]), d["scale"], list(d["sm_to_params"]), d["scale_factor"])

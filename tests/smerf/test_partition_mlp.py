@@ -1,0 +1,73 @@
+"""SMERF's camera partition (eq. 6) and the deferred-MLP lattice (eq. 7), the latter checked against the
+viewer-equivalent interpolation used by the baked renderer."""
+import numpy as np
+import pytest
+import torch
+
+from nerfbake.smerf.baked_render import VIEWER_FROM_TRAIN, deferred_mlp_weights
+from nerfbake.smerf.deferred_mlp import GridMLP
+from nerfbake.smerf.partition import Partition, PartitionError
+
+
+def test_partition_assigns_cameras_by_cell_and_inf_norm():
+    rng = np.random.default_rng(0)
+    # cameras in two rooms, diagonal from each other: only the cells they occupy come alive
+    cams = np.concatenate([rng.uniform([-4, -1, -1], [-2, 1, 1], (30, 3)), rng.uniform([2, 3, -1], [4, 5, 1], (30, 3))])
+    part = Partition.from_cameras(cams, k=2)
+    assert np.abs(part.normalize(cams)).max() <= 0.95 + 1e-9
+    assert part.num_alive == 4 and part.submodel_scale == pytest.approx(1.6)
+    home = part.assign(cams)
+    assert len(set(home[:30]) & set(home[30:])) == 0  # the rooms get different submodels
+    for i, p in zip(part.assign(cams), part.normalize(cams)):  # home cell = the cell holding the camera
+        assert part.params_to_sm[i] == part.cell_index(p)
+    assert Partition.from_cameras(cams, k=1).submodel_scale == pytest.approx(2.5)
+    # a point in a dead cell goes to the inf-norm nearest alive centre
+    dead = [s for s, p in enumerate(part.sm_to_params) if p < 0]
+    assert len(dead) == 4
+    for sm in dead:
+        c = part.cell_centre(sm)
+        world = c / part.scale + part.centre
+        got = part.assign(world[None])[0]
+        dists = [np.abs(c - part.cell_centre(s)).max() for s in part.params_to_sm]
+        assert dists[got] == min(dists)
+    with pytest.raises(PartitionError, match="outside the partition cube"):
+        part.assign(np.array([[40.0, 0, 0]]), strict=True)
+    with pytest.raises(PartitionError, match="no training cameras"):
+        Partition.from_cameras(np.zeros((0, 3)), k=2)
+    assert Partition.from_json(part.to_json()).sm_to_params == part.sm_to_params
+    for p in range(part.num_alive):
+        assert p not in part.neighbours(p)
+
+
+def test_grid_mlp_interpolation_matches_the_viewer():
+    g = torch.Generator().manual_seed(0)
+    mlp = GridMLP(1, generator=g)
+    with torch.no_grad():
+        for p in list(mlp.kernels) + list(mlp.biases):
+            p.add_(torch.randn(p.shape, generator=g) * 0.3)  # make every lattice node different
+    exported = {k: np.asarray(v["data"], np.float32).reshape(v["shape"]) for k, v in mlp.export().items()}
+    params = {"num_submodels": 1, "num_local_submodels": 1, "submodel_voxel_size": 2.0, "params_to_sm": [0]}
+    for viewer_pos in np.random.default_rng(1).uniform(-1.2, 1.2, (5, 3)):
+        ref = deferred_mlp_weights(exported, params, 0, viewer_pos)
+        train_pos = torch.tensor(VIEWER_FROM_TRAIN @ viewer_pos, dtype=torch.float32)[None]
+        ours = mlp.weights_at(torch.zeros(1, dtype=torch.long), train_pos)
+        for (k, b), (rk, rb) in zip(ours, ref):
+            assert np.allclose(k[0].detach().numpy(), rk, atol=1e-5) and np.allclose(b[0].detach().numpy(), rb, atol=1e-5)
+
+
+def test_grid_mlp_trains_and_its_tv_is_zero_when_constant():
+    mlp = GridMLP(2, in_dim=5, generator=torch.Generator().manual_seed(0))
+    assert float(mlp.tv_loss().detach()) == 0.0
+    x = torch.rand(64, 5)
+    pos = torch.rand(64, 3) * 2 - 1
+    idx = torch.randint(0, 2, (64,))
+    target = torch.rand(64, 3)
+    opt = torch.optim.Adam(mlp.parameters(), lr=1e-2)
+    first = None
+    for _ in range(50):
+        loss = ((mlp(x, idx, pos) - target) ** 2).mean() + 0.1 * mlp.tv_loss()
+        first = first if first is not None else float(loss.detach())
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+    assert float(loss.detach()) < 0.5 * first and float(mlp.tv_loss().detach()) > 0
