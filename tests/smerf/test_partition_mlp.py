@@ -1,5 +1,5 @@
-"""SMERF's camera partition (eq. 6) and the deferred-MLP lattice (eq. 7), the latter checked against the
-viewer-equivalent interpolation used by the baked renderer."""
+"""SMERF's camera partition (eq. 6), the deferred-MLP lattice (eq. 7; checked against the viewer-equivalent
+interpolation used by the baked renderer) and the simulated 8-bit quantisation."""
 import numpy as np
 import pytest
 import torch
@@ -71,3 +71,17 @@ def test_grid_mlp_trains_and_its_tv_is_zero_when_constant():
         loss.backward()
         opt.step()
     assert float(loss.detach()) < 0.5 * first and float(mlp.tv_loss().detach()) > 0
+
+
+def test_simulated_quantisation_is_the_bake_round_trip_with_straight_through_gradients():
+    from nerfbake.smerf.quantize import RANGE_DENSITY, RANGE_FEATURES, from_bytes, simulate, to_bytes
+
+    x = (torch.rand(1000, dtype=torch.float64) - 0.5) * 40
+    for rng in (RANGE_FEATURES, RANGE_DENSITY):
+        baked = from_bytes(to_bytes(x, rng), rng)
+        xs = x.clone().requires_grad_()
+        sim = simulate(xs, rng)
+        assert np.allclose(sim.detach().numpy(), baked, atol=1e-9)
+        assert np.abs(baked - x.clamp(*rng).numpy()).max() <= (rng[1] - rng[0]) / 255 / 2 + 1e-9
+        sim.sum().backward()
+        assert torch.equal(xs.grad, torch.ones_like(xs))
