@@ -10,12 +10,15 @@ from nerfbake.data import images
 def test_demo_synthesises_and_summarises(tmp_path):
     out = tmp_path / "demo"
     proc = subprocess.run([sys.executable, "-m", "nerfbake", "demo", "--out", str(out), "--width", "48",
-                           "--views", "4", "--spp", "4", "--teacher-steps", "20", "--eval-views", "1"], capture_output=True, text=True)
+                           "--views", "4", "--spp", "4", "--teacher-steps", "60", "--eval-views", "1", "--octree-grid", "32"],
+                          capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr
     res = json.loads(proc.stdout[proc.stdout.index("{"): proc.stdout.rindex("}") + 1])
     assert res["scene"]["format"] == "blender" and res["scene"]["splits"]["train"] == 4
     assert res["teacher"]["num_views"] == 1 and res["teacher"]["psnr"] > 5
     assert (out / "scene" / "transforms_test.json").is_file()
+    assert set(res["octree"]) == {"raw", "optimized", "compressed"} and res["octree"]["optimized"]["psnr"] > 5
+    assert res["octree"]["compressed"]["file_bytes"] < res["octree"]["raw"]["file_bytes"]
 
 
 def test_downscaled_images_are_cached_on_disk(tmp_path, monkeypatch, lego):
