@@ -39,7 +39,9 @@ def optimize_preset(name: str) -> OptimizeConfig:
     if name == "paper":
         return OptimizeConfig()
     if name == "cpu-small":
-        return OptimizeConfig(epochs=3, lr=2e6, val_every=1, val_views=5)  # lr: 400x400 images, 256^3 leaves (lego)
+        # lego_400 (400x400 images) with a 512^3 tree: +0.36 dB over the teacher after 3 epochs (~16 min on 2 cores).
+        # 256^3 trees collect ~4x the gradient per leaf and want ~2e6.
+        return OptimizeConfig(epochs=3, lr=5e6, val_every=1, val_views=5)
     raise ValueError(f"unknown preset {name!r}; choose paper or cpu-small")
 
 
