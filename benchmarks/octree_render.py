@@ -11,7 +11,6 @@ import argparse
 import json
 import platform
 import time
-from dataclasses import replace
 
 import torch
 
@@ -22,11 +21,6 @@ from nerfbake.octree.evaluate import time_frames
 from nerfbake.octree.io import load_tree
 from nerfbake.octree.render import RenderOptions, render_reference, render_rays
 from nerfbake.train.loop import default_device, git_revision
-
-
-def scaled(cam, size: int):
-    s = size / cam.width
-    return replace(cam, width=size, height=size, fx=cam.fx * s, fy=cam.fy * s, cx=cam.cx * s, cy=cam.cy * s)
 
 
 def main() -> None:
@@ -45,7 +39,7 @@ def main() -> None:
     out = {"tree": args.tree, "num_leaves": tree.num_leaves, "device": str(device), "threads": torch.get_num_threads(),
            "machine": platform.processor() or platform.machine(), "git": git_revision(), "options": vars(opts)}
     for size in (400, 800):
-        sec = time_frames(tree, [scaled(c, size) for c in cams], opts, args.repeats)
+        sec = time_frames(tree, [c.scaled(c.width / size) for c in cams], opts, args.repeats)
         out[f"ms_per_frame_{size}"] = 1000 * sec
         out[f"fps_{size}"] = 1 / sec
         out[f"rays_per_s_{size}"] = size * size / sec

@@ -152,12 +152,7 @@ def cmd_teacher_train(args) -> int:
         cfg = config_from_dict(d.get("train", d))  # a run's config.json or a bare training config
     else:
         cfg = preset(args.field, args.preset)
-    if args.steps is not None:
-        cfg.steps = args.steps
-    if args.batch_rays is not None:
-        cfg.batch_rays = args.batch_rays
-    if args.downscale is not None:
-        cfg.downscale = args.downscale
+    cfg = _override(cfg, args, ("steps", "batch_rays", "downscale"))
     cfg.seed = args.seed
     if args.tensorboard:
         cfg.tensorboard = True
@@ -203,15 +198,19 @@ def _octree_opts(args):
     return opts
 
 
+def _override(cfg, args, names: tuple[str, ...]):
+    """A preset's dataclass with the options the user gave on the command line (None = not given)."""
+    from dataclasses import replace
+
+    return replace(cfg, **{n: getattr(args, n) for n in names if getattr(args, n) is not None})
+
+
 def cmd_octree_build(args) -> int:
     from dataclasses import replace
 
     from nerfbake.octree.build import build_octree, build_preset
 
-    cfg = build_preset(args.preset)
-    for name in ("grid", "weight_thresh", "samples_per_leaf", "ray_stride"):
-        if getattr(args, name) is not None:
-            cfg = replace(cfg, **{name: getattr(args, name)})
+    cfg = _override(build_preset(args.preset), args, ("grid", "weight_thresh", "samples_per_leaf", "ray_stride"))
     if args.no_autoscale:
         cfg = replace(cfg, autoscale=False)
     cfg.depth  # validates --grid before any work
@@ -227,10 +226,7 @@ def cmd_octree_optimize(args) -> int:
 
     from nerfbake.octree.optimize import optimize_preset, optimize_tree
 
-    cfg = optimize_preset(args.preset)
-    for name in ("epochs", "lr", "val_every", "downscale"):
-        if getattr(args, name) is not None:
-            cfg = replace(cfg, **{name: getattr(args, name)})
+    cfg = _override(optimize_preset(args.preset), args, ("epochs", "lr", "val_every", "downscale"))
     if args.continue_on_decrease:
         cfg = replace(cfg, continue_on_decrease=True)
     summary = optimize_tree(args.tree, args.data, args.out, cfg)

@@ -3,6 +3,7 @@ rendered repeatedly after a warm-up pass, mean ms per frame at the dataset's res
 from __future__ import annotations
 
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -41,13 +42,12 @@ def evaluate_tree(tree_path: str | Path, data: str | Path, split: str = "test", 
     ds = load_dataset(data, downscale=downscale)
     out_dir = tree_path.parent / f"{tree_path.stem}_eval"
 
-    def render(cam, bg):
-        return render_camera(tree, cam, RenderOptions(**{**vars(opts or RenderOptions()), "background": bg}))["rgb"]
-
-    result = evaluate_views(render, ds, split, max_views, out_dir / split if write else None, desc="octree eval")
-    cams = [ds.frames[i].camera for i in pick_views(ds.split(split), max_views)]
     bg = tuple(ds.background or (1.0, 1.0, 1.0))
-    sec = time_frames(tree, cams, RenderOptions(**{**vars(opts or RenderOptions()), "background": bg}), repeats)
+    opts = replace(opts or RenderOptions(), background=bg)
+    result = evaluate_views(lambda cam, _bg: render_camera(tree, cam, opts)["rgb"], ds, split, max_views,
+                            out_dir / split if write else None, desc="octree eval")
+    cams = [ds.frames[i].camera for i in pick_views(ds.split(split), max_views)]
+    sec = time_frames(tree, cams, opts, repeats)
     result.update({
         "ms_per_frame": 1000.0 * sec, "fps": 1.0 / sec, "resolution": [cams[0].width, cams[0].height],
         "num_leaves": tree.num_leaves, "file_bytes": tree_path.stat().st_size,

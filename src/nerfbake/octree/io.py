@@ -128,7 +128,7 @@ def load_tree(path: str | Path, device="cpu") -> Octree:
     tree = Octree(
         child=torch.from_numpy(np.ascontiguousarray(child)), data=torch.from_numpy(np.ascontiguousarray(data)),
         offset=torch.from_numpy(offset.copy()), invradius=torch.from_numpy(inv.copy()),
-        depth_limit=int(z["depth_limit"]) if "depth_limit" in z else _depth_of(child),
+        depth_limit=int(z["depth_limit"]) if "depth_limit" in z else -1,  # -1: taken from the tree below
     )
     _check_structure(path, tree)
     return tree.to(device)
@@ -159,20 +159,9 @@ def _decode_compressed(path, z, n: int, nb: int) -> np.ndarray:
     return data
 
 
-def _depth_of(child: np.ndarray) -> int:
-    flat = child.reshape(-1)
-    nodes, depth = np.zeros(1, np.int64), 0
-    while True:
-        slots = (nodes[:, None] * 8 + np.arange(8)).reshape(-1)
-        slots = slots[flat[slots] != 0]
-        if not slots.size:
-            return depth
-        nodes = slots // 8 + flat[slots]
-        depth += 1
-
-
 def _check_structure(path, tree: Octree) -> None:
-    """Pointers stay inside the array and reach every node once; there are leaves; values are finite."""
+    """Pointers stay inside the array and reach every node once; there are leaves; values are finite. Fills in
+    ``depth_limit`` when the file has none (-1)."""
     flat = tree.child.reshape(-1).numpy().astype(np.int64)
     n = tree.num_nodes
     if n == 0:
@@ -185,7 +174,10 @@ def _check_structure(path, tree: Octree) -> None:
         raise _fail(path, "two cells point at the same child node (corrupt 'child')")
     if tree.num_leaves == 0:
         raise _fail(path, "the tree has no leaves")
-    if _depth_of(tree.child.numpy()) > tree.depth_limit + 1 or tree.depth_limit > 23:
+    depth = int(tree.parent_depth()[:, 1].max())  # safe now: every node has one parent, none points at the root
+    if tree.depth_limit < 0:
+        tree.depth_limit = depth
+    if depth > tree.depth_limit + 1 or tree.depth_limit > 23:
         raise _fail(path, f"the tree is deeper than its depth_limit {tree.depth_limit} (or deeper than 24 levels)")
     if not torch.isfinite(tree.data).all():
         raise _fail(path, "leaf data holds NaN or infinite values")

@@ -16,6 +16,7 @@ import torch
 
 from nerfbake.data.formats import load_dataset
 from nerfbake.data.rays import camera_rays
+from nerfbake.eval.metrics import psnr
 from nerfbake.eval.views import pick_views
 from nerfbake.kernels.octree import backward_buffers, render_backward, render_forward
 from nerfbake.octree.io import load_tree, save_tree
@@ -61,12 +62,8 @@ def image_step(tree, camera, target: torch.Tensor, opts: RenderOptions, lr: floa
 
 def validation_psnr(tree, ds, indices, background) -> float:
     opts = RenderOptions(background=background)
-    ps = []
-    for i in indices:
-        pred = render_camera(tree, ds.frames[i].camera, opts)["rgb"]
-        mse = float(np.mean((np.clip(pred, 0, 1) - ds.image(i)[..., :3]) ** 2))
-        ps.append(-10.0 * np.log10(max(mse, 1e-12)))
-    return float(np.mean(ps))
+    return float(np.mean([float(psnr(render_camera(tree, ds.frames[i].camera, opts)["rgb"], ds.image(i)[..., :3])[0])
+                          for i in indices]))
 
 
 def optimize_tree(tree_path: str | Path, data: str | Path, out: str | Path, cfg: OptimizeConfig) -> dict:

@@ -88,7 +88,7 @@ def trace_reference(tree: Octree, origins: torch.Tensor, dirs: torch.Tensor, opt
     while bool(active.any()):
         a = rays[active]
         p = ot[a] + t[a, None] * dt[a]
-        slot, cube, q = tree_leaf_local(tree, p)
+        slot, cube, q = tree.descend(p)
         delta = leaf_exit_reference(q, dt[a], cube)
         sigma = flat[slot, -1].to(origins.dtype)
         keep = sigma > opts.sigma_thresh
@@ -105,32 +105,6 @@ def trace_reference(tree: Octree, origins: torch.Tensor, dirs: torch.Tensor, opt
     res = {k: v[order] for k, v in cat.items()}
     res["stopped"] = stopped
     return res
-
-
-def tree_leaf_local(tree: Octree, p: torch.Tensor):
-    """Flat leaf index, cells per axis at its depth, and leaf-local coordinates, computed as the kernel does."""
-    child = tree.child.reshape(-1)
-    q = p.clamp(0.0, 0.9999999)
-    node = torch.zeros(p.shape[0], dtype=torch.long)
-    slot = node.clone()
-    cube = torch.ones(p.shape[0], dtype=p.dtype)
-    local = q.clone()
-    active = torch.ones(p.shape[0], dtype=torch.bool)
-    for _ in range(tree.depth_limit + 2):
-        q = q * 2.0
-        idx = q.floor().clamp(0, 1)
-        q = q - idx
-        idx = idx.long()
-        s = node * 8 + idx[:, 0] * 4 + idx[:, 1] * 2 + idx[:, 2]
-        slot = torch.where(active, s, slot)
-        cube = torch.where(active, cube * 2.0, cube)
-        local = torch.where(active[:, None], q, local)
-        ptr = child[slot].long()
-        active = active & (ptr != 0)
-        if not bool(active.any()):
-            break
-        node = torch.where(active, node + ptr, node)
-    return slot, cube, local
 
 
 def leaf_exit_reference(q: torch.Tensor, d: torch.Tensor, cube: torch.Tensor) -> torch.Tensor:

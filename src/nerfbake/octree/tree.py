@@ -117,12 +117,15 @@ class Octree:
             depth += 1
         return {k: torch.cat(v) for k, v in out.items()}
 
-    def lookup(self, q: torch.Tensor) -> torch.Tensor:
-        """Flat leaf index (into ``data.view(-1, D)``) of tree-space points q (M, 3) in [0, 1)^3."""
+    def descend(self, q: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        """For tree-space points q (M, 3): flat leaf index (into ``data.view(-1, D)``), cells per axis at the leaf's
+        depth, and the point in leaf-local [0, 1)^3, computed step by step as the render kernel does."""
         child = self.child.reshape(-1)
-        q = q.clamp(0.0, 1.0 - 1e-7).clone()
+        q = q.clamp(0.0, 0.9999999)
         node = torch.zeros(q.shape[0], dtype=torch.long, device=q.device)
-        slot = node
+        slot = node.clone()
+        cube = torch.ones(q.shape[0], dtype=q.dtype, device=q.device)
+        local = q.clone()
         active = torch.ones_like(node, dtype=torch.bool)
         for _ in range(self.depth_limit + 2):
             q = q * N
@@ -131,12 +134,18 @@ class Octree:
             idx = idx.long()
             s = node * 8 + idx[:, 0] * 4 + idx[:, 1] * 2 + idx[:, 2]
             slot = torch.where(active, s, slot)
+            cube = torch.where(active, cube * N, cube)
+            local = torch.where(active[:, None], q, local)
             ptr = child[slot].long()
             active = active & (ptr != 0)
             if not bool(active.any()):
                 break
             node = torch.where(active, node + ptr, node)
-        return slot
+        return slot, cube, local
+
+    def lookup(self, q: torch.Tensor) -> torch.Tensor:
+        """Flat leaf index (into ``data.view(-1, D)``) of tree-space points q (M, 3) in [0, 1)^3."""
+        return self.descend(q)[0]
 
     def query(self, points: torch.Tensor) -> torch.Tensor:
         """Leaf values at world points (M, 3), as svox's ``N3Tree.__call__``."""

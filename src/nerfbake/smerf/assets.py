@@ -138,6 +138,7 @@ class SceneAssets:
     params: dict  # the first submodel's scene_params
     mlp: dict
     _cache: dict = field(default_factory=dict)
+    device_scenes: dict = field(default_factory=dict)  # (params index, device) -> renderer's copy of a submodel
 
     @classmethod
     def open(cls, path: str | Path) -> "SceneAssets":

@@ -153,8 +153,10 @@ def render_baked(scene: SceneAssets, cam: ViewerCamera, step_mult: float = 1.0, 
     sm = scene.submodel(si)
     scale = float(sm.params["submodel_scale"])
     origins, dirs = camera_rays(cam, submodel_center(sm.params, si), scale)
-    ws = to_warp_scene(sm, "cpu" if device == "cpu" else device)
-    acc = march_baked(ws, origins.to(device), dirs.to(device), step_mult, visibility_delay)
+    key = (si, device)
+    if key not in scene.device_scenes:  # upload once per submodel and device, not every frame
+        scene.device_scenes[key] = to_warp_scene(sm, device)
+    acc = march_baked(scene.device_scenes[key], origins.to(device), dirs.to(device), step_mult, visibility_delay)
     acc = {k: v.cpu() for k, v in acc.items()}
     weights = deferred_mlp_weights(scene.mlp, sm.params, si, cam.position)
     rgb = deferred_shade(acc, dirs, weights, sm.params, background)
