@@ -42,3 +42,15 @@ def tiny_scene(tmp_path_factory) -> Path:
     from nerfbake.data.synth import SynthConfig, render_dataset
 
     return render_dataset(SynthConfig("objects", 32, 32, views=6, spp=4, seed=0), tmp_path_factory.mktemp("tiny") / "scene")
+
+
+@pytest.fixture(scope="session")
+def tiny_teacher(tiny_scene, tmp_path_factory) -> Path:
+    """A hash teacher trained 150 steps on ``tiny_scene`` (shared by the octree and SMERF tests)."""
+    from dataclasses import replace
+
+    from nerfbake.teacher.train import train_teacher
+    from tests.helpers import tiny_config
+
+    cfg = replace(tiny_config(steps=150), checkpoint_every=1000, val_every=10_000)
+    return train_teacher(tiny_scene, tmp_path_factory.mktemp("teacher") / "run", cfg)

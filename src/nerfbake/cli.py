@@ -309,27 +309,56 @@ def cmd_octree_render(args) -> int:
 
 
 def cmd_smerf_info(args) -> int:
-    from nerfbake.smerf.assets import SceneAssets, read_params
-    from nerfbake.smerf.validate import asset_problems
+    from nerfbake.smerf.evaluate import asset_summary
 
-    scene = SceneAssets.open(args.assets)
-    subs = []
-    for params_idx, sm in enumerate(scene.params["params_to_sm"]):
-        folder = scene.root / f"sm_{sm:03d}"
-        p = read_params(folder)
-        subs.append({"params_idx": params_idx, "submodel": sm, "folder": str(folder),
-                     "disk_bytes": sum(f.stat().st_size for f in folder.iterdir() if f.is_file()),
-                     **{k: p.get(k) for k in ("triplane_resolution", "sparse_grid_resolution", "atlas_width", "atlas_height",
-                                              "atlas_depth", "submodel_scale")}})
-    info = {"assets": str(scene.root), "num_submodels": len(subs), "grid": round(2.0 / scene.params["submodel_voxel_size"]),
-            "disk_bytes": sum(s["disk_bytes"] for s in subs), "peak_submodel_bytes": max(s["disk_bytes"] for s in subs),
-            "deferred_mlp_grid": list(scene.mlp["ResampleDense_0/kernel"].shape[1:4]), "submodels": subs,
-            "format_problems": asset_problems(scene.root)}
+    info = asset_summary(args.assets)
     if args.json:
         _print_json(info)
     else:
         print(f"{info['assets']}: {info['num_submodels']} submodel(s) on a {info['grid']}^3 grid, "
               f"{info['disk_bytes'] / 1e6:.2f} MB on disk (largest submodel {info['peak_submodel_bytes'] / 1e6:.2f} MB)")
+        for msg in info["format_problems"]:
+            print(f"format problem: {msg}")
+    return 0
+
+
+def cmd_distill(args) -> int:
+    from nerfbake.smerf.distill import config_from_dict, distill, distill_preset
+
+    if args.config:
+        d = json.loads(Path(args.config).read_text())
+        cfg = config_from_dict(d.get("distill", d))
+    else:
+        cfg = distill_preset(args.preset, args.k or 1)
+    cfg = _override(cfg, args, ("k", "steps", "batch_patches"))
+    if args.tensorboard:
+        cfg.tensorboard = True
+    distill(args.teacher, args.out, cfg, resume=args.resume)
+    return 0
+
+
+def cmd_bake(args) -> int:
+    from nerfbake.smerf.bake import bake_student
+
+    stats = bake_student(args.student, args.out, stride=args.ray_stride, overwrite=args.overwrite)
+    print(f"baked {stats['num_submodels']} submodel(s) into {args.out} in {stats['seconds']:.0f} s "
+          f"(render with: nerfbake smerf render --assets {args.out} --out DIR)")
+    return 0
+
+
+def cmd_smerf_eval(args) -> int:
+    from nerfbake.smerf.evaluate import evaluate_assets, evaluate_student
+
+    if args.student:
+        result = evaluate_student(args.student, args.data, args.split, args.max_views, write_images=not args.no_images)
+    else:
+        result = evaluate_assets(args.assets, args.data, args.split, args.max_views, write_images=not args.no_images)
+    if args.json:
+        _print_json(result)
+    else:
+        print(f"{result['method']} {result['split']}: PSNR {result['psnr']:.2f}  SSIM {result['ssim']:.4f}  "
+              f"LPIPS-{result['lpips_net']} {result['lpips_' + result['lpips_net']]:.4f}  "
+              f"{result['ms_per_frame']:.0f} ms/frame  {result['disk_bytes'] / 1e6:.1f} MB")
     return 0
 
 
@@ -481,6 +510,16 @@ def build_parser() -> argparse.ArgumentParser:
     si.add_argument("assets", help="folder holding sm_XXX/ (or one sm_XXX folder)")
     si.add_argument("--json", action="store_true")
     si.set_defaults(func=cmd_smerf_info)
+    se = smerf.add_parser("eval", help="PSNR/SSIM/LPIPS of a student or of baked assets on a held-out split")
+    which = se.add_mutually_exclusive_group(required=True)
+    which.add_argument("--student", help="a folder written by nerfbake distill")
+    which.add_argument("--assets", help="a folder written by nerfbake bake")
+    se.add_argument("--data", help="dataset (default: the one the student was distilled on)")
+    se.add_argument("--split", default="test")
+    se.add_argument("--max-views", type=int)
+    se.add_argument("--no-images", action="store_true")
+    se.add_argument("--json", action="store_true")
+    se.set_defaults(func=cmd_smerf_eval)
     sr = smerf.add_parser("render", help="render test_frames.json views as the official viewer's shader does")
     sr.add_argument("--assets", required=True)
     sr.add_argument("--out", required=True)
@@ -489,6 +528,24 @@ def build_parser() -> argparse.ArgumentParser:
     sr.add_argument("--height", type=int, default=500)
     sr.add_argument("--step-mult", type=float, default=1.0, help="the viewer's stepMult (finer steps)")
     sr.set_defaults(func=cmd_smerf_render)
+
+    di = sub.add_parser("distill", help="distil a teacher into SMERF submodels (K^3 camera partition)")
+    di.add_argument("--teacher", required=True, help="a teacher run folder")
+    di.add_argument("--out", required=True)
+    di.add_argument("--k", type=int, help="submodels per axis (default 1)")
+    di.add_argument("--preset", default="cpu-small", choices=["cpu-small", "paper"])
+    di.add_argument("--config", help="a student's config.json (or a bare distillation config) instead of --preset")
+    di.add_argument("--steps", type=int)
+    di.add_argument("--batch-patches", type=int, help="3x3 patches per step")
+    di.add_argument("--resume", action="store_true")
+    di.add_argument("--tensorboard", action="store_true")
+    di.set_defaults(func=cmd_distill)
+    bk = sub.add_parser("bake", help="bake a student into the SMERF web viewer's asset format")
+    bk.add_argument("--student", required=True)
+    bk.add_argument("--out", required=True)
+    bk.add_argument("--ray-stride", type=int, default=2, help="use every n-th pixel row/column for the alive voxels")
+    bk.add_argument("--overwrite", action="store_true")
+    bk.set_defaults(func=cmd_bake)
 
     demo = sub.add_parser("demo", help="run the pipeline on the built-in synthetic scene (CPU preset)")
     demo.add_argument("--out", default="outputs/demo")

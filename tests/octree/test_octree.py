@@ -3,7 +3,6 @@ backward (vs autograd and finite differences), compression, building from a teac
 import json
 import math
 import zipfile
-from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -17,9 +16,7 @@ from nerfbake.octree.io import OctreeFileError, load_tree, save_tree, volrend_pr
 from nerfbake.octree.optimize import OptimizeConfig, optimize_tree
 from nerfbake.octree.render import RenderOptions, render_reference, render_rays
 from nerfbake.octree.tree import Octree, tree_from_cells
-from nerfbake.teacher.train import train_teacher
 from tests.conftest import shared_data
-from tests.helpers import tiny_config
 
 
 @pytest.fixture(scope="module")
@@ -252,12 +249,6 @@ def test_compress_follows_the_web_layout(tmp_path):
 
 
 # --- build and fine-tune from a teacher --------------------------------------------------------------------------------
-
-@pytest.fixture(scope="module")
-def tiny_teacher(tiny_scene, tmp_path_factory):
-    cfg = replace(tiny_config(steps=150), checkpoint_every=1000, val_every=10_000)
-    return train_teacher(tiny_scene, tmp_path_factory.mktemp("teacher") / "run", cfg)
-
 
 def test_build_optimize_compress_eval_on_a_tiny_scene(tiny_scene, tiny_teacher, tmp_path):
     from nerfbake.octree.optimize import image_step

@@ -85,3 +85,19 @@ def test_simulated_quantisation_is_the_bake_round_trip_with_straight_through_gra
         assert np.abs(baked - x.clamp(*rng).numpy()).max() <= (rng[1] - rng[0]) / 255 / 2 + 1e-9
         sim.sum().backward()
         assert torch.equal(xs.grad, torch.ones_like(xs))
+
+
+def test_grid_mlp_forward_equals_per_ray_interpolated_layers():
+    g = torch.Generator().manual_seed(2)
+    mlp = GridMLP(3, in_dim=7, generator=g)
+    with torch.no_grad():
+        for p in list(mlp.kernels) + list(mlp.biases):
+            p.add_(torch.randn(p.shape, generator=g) * 0.3)
+    x, pos = torch.rand(40, 7, generator=g), torch.rand(40, 3, generator=g) * 2.4 - 1.2
+    idx = torch.randint(0, 3, (40,), generator=g)
+    h = x
+    layers = mlp.weights_at(idx, pos)
+    for i, (k, b) in enumerate(layers):
+        h = torch.einsum("ri,rio->ro", h, k) + b
+        h = torch.nn.functional.elu(h) if i < 2 else torch.sigmoid(h)
+    assert torch.allclose(mlp(x, idx, pos), h, atol=1e-5)

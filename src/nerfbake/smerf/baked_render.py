@@ -12,6 +12,7 @@ import numpy as np
 import torch
 
 from nerfbake.smerf.assets import AssetError, SceneAssets
+from nerfbake.smerf.deferred_mlp import deferred_inputs
 
 # viewer frame <-> training frame: (x', y', z') = (-x, z, y); its own inverse
 VIEWER_FROM_TRAIN = np.array([[-1.0, 0, 0], [0, 0, 1], [0, 1, 0]])
@@ -110,33 +111,14 @@ def deferred_mlp_weights(mlp: dict, params: dict, params_idx: int, position: np.
     return out
 
 
-def pos_enc(v: torch.Tensor, degrees: int = 4) -> torch.Tensor:
-    """[v, sin(2^k v), cos(2^k v)] with k outer, axis inner (the deferred MLP's view-direction encoding)."""
-    scaled = torch.cat([v * (2.0 ** k) for k in range(degrees)], -1)
-    return torch.cat([v, torch.sin(scaled), torch.cos(scaled)], -1)
-
-
 def deferred_shade(acc: dict, view_dirs: torch.Tensor, weights, params: dict, background=(0.5, 0.5, 0.5),
                    exposure: float | None = None) -> torch.Tensor:
     """Final colour per pixel from accumulated diffuse colour/features (SNeRG mode: diffuse + MLP output)."""
-    bg = torch.tensor(background, dtype=torch.float32)
-    c_in = acc["color"] + acc["visibility"][:, None] * bg
     if params.get("deferred_rendering_mode", "snerg") != "snerg":
         raise AssetError(f"deferred_rendering_mode {params.get('deferred_rendering_mode')!r} is not supported (snerg only)")
-    exposure = params.get("default_exposure") or exposure
-
-    def e(x):
-        if exposure is None:
-            return x
-        x = x.clamp(1e-7, 1 - 1e-7)
-        return torch.log(x / (1 - x)) + math.log(exposure)
-
-    parts = [e(c_in), e(acc["feat"])]
-    if params.get("merge_features_combine_op", "coarse_sum") == "coarse_sum":
-        parts += [e(acc["coarse_color"]), e(acc["coarse_feat"])]
     v = torch.from_numpy((view_dirs.numpy() @ VIEWER_FROM_TRAIN.T).astype(np.float32))
-    v = v / v.norm(dim=-1, keepdim=True)
-    x = torch.cat(parts + [pos_enc(v)], -1)
+    x = deferred_inputs(acc, v, background, params.get("merge_features_combine_op", "coarse_sum"),
+                        params.get("default_exposure") or exposure)
     act = torch.nn.functional.elu if params.get("activation", "elu") == "elu" else torch.relu
     for layer, (kern, bias) in enumerate(weights):
         x = x @ torch.from_numpy(kern[: x.shape[1]].astype(np.float32)) + torch.from_numpy(bias.astype(np.float32))

@@ -10,6 +10,34 @@ import torch
 from torch import nn
 
 
+def pos_enc(v: torch.Tensor, degrees: int = 4) -> torch.Tensor:
+    """[v, sin(2^k v), cos(2^k v)] with k outer, axis inner (the deferred MLP's view-direction encoding)."""
+    scaled = torch.cat([v * (2.0 ** k) for k in range(degrees)], -1)
+    return torch.cat([v, torch.sin(scaled), torch.cos(scaled)], -1)
+
+
+def deferred_inputs(acc: dict, view_dirs: torch.Tensor, background, combine_op: str = "coarse_sum",
+                    exposure: float | None = None) -> torch.Tensor:
+    """The MLP input per pixel, laid out as the viewer's shader writes it: the accumulated diffuse colour composited
+    over the background (SNeRG mode), the accumulated features, with ``coarse_sum`` the sparse-grid-only colour and
+    features, then the unit view direction (training frame) and its sin/cos encoding. ``acc`` holds ``color``
+    (R, 3), ``visibility`` (R,), ``feat`` (R, 4), ``coarse_color``, ``coarse_feat``."""
+    bg = torch.as_tensor(background, dtype=acc["color"].dtype, device=acc["color"].device)
+    c_in = acc["color"] + acc["visibility"][:, None] * bg
+
+    def e(x):
+        if exposure is None:
+            return x
+        x = x.clamp(1e-7, 1 - 1e-7)
+        return torch.log(x / (1 - x)) + math.log(exposure)
+
+    parts = [e(c_in), e(acc["feat"])]
+    if combine_op == "coarse_sum":
+        parts += [e(acc["coarse_color"]), e(acc["coarse_feat"])]
+    v = view_dirs / view_dirs.norm(dim=-1, keepdim=True)
+    return torch.cat(parts + [pos_enc(v)], -1)
+
+
 class GridMLP(nn.Module):
     def __init__(self, num_submodels: int, in_dim: int = 41, width: int = 16, grid: int = 5, activation: str = "elu",
                  generator: torch.Generator | None = None):
@@ -45,10 +73,15 @@ class GridMLP(nn.Module):
         return out
 
     def forward(self, x: torch.Tensor, params_idx: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
+        """Interpolate the layers once per distinct (submodel, position) - in the viewer one per frame, in training
+        one per camera - then apply them per ray. Feeding every ray its own position works but costs a gather of
+        8 kernels per ray in the forward and a scatter of as many in the backward."""
+        key = torch.cat([params_idx[:, None].to(pos.dtype), pos], 1)
+        uniq, inv = torch.unique(key, dim=0, return_inverse=True)
+        layers = self.weights_at(uniq[:, 0].long(), uniq[:, 1:])
         h = x
-        layers = self.weights_at(params_idx, pos)
         for i, (k, b) in enumerate(layers):
-            h = torch.einsum("ri,rio->ro", h, k) + b
+            h = torch.bmm(h[:, None, :], k[inv])[:, 0] + b[inv]
             if i < len(layers) - 1:
                 h = nn.functional.elu(h) if self.activation == "elu" else torch.relu(h)
         return torch.sigmoid(h)

@@ -39,15 +39,19 @@ class Partition:
 
     @classmethod
     def from_cameras(cls, origins: np.ndarray, k: int, margin: float = 0.05, scale_factor: float | None = None) -> "Partition":
-        """Normalise camera origins (N, 3) into [-1 + margin, 1 - margin]^3 (uniform scale) and mark alive cells."""
+        """Normalise camera origins (N, 3) into [-1 + margin, 1 - margin]^3 (uniform scale) and mark alive cells.
+
+        With K = 1 the cube is centred on the world origin, which the dataset loaders put at the scene's centre
+        of interest, so the object lands in the middle of the submodel's uncontracted core; with K > 1 it is
+        centred on the cameras' bounding box so that no cells are wasted."""
         if k < 1:
             raise PartitionError(f"K must be >= 1, got {k}")
         origins = np.asarray(origins, np.float64)
         if origins.ndim != 2 or origins.shape[0] == 0:
             raise PartitionError("no training cameras to partition")
         lo, hi = origins.min(0), origins.max(0)
-        centre = (lo + hi) / 2
-        half = float((hi - lo).max()) / 2
+        centre = (lo + hi) / 2 if k > 1 else np.zeros(3)
+        half = float(np.abs(origins - centre).max())
         scale = (1.0 - margin) / half if half > 0 else 1.0
         part = cls(k, centre, scale, [-1] * k ** 3, scale_factor if scale_factor is not None else (2.5 if k == 1 else 0.8))
         alive = sorted(set(part.cell_index(part.normalize(origins)).tolist()))

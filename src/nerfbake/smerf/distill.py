@@ -1,0 +1,351 @@
+"""``nerfbake distill``: train the SMERF student from a teacher run (SMERF paper section 5, appendix B).
+
+Every step draws 3x3 pixel patches from the training cameras, jitters them (origin and, per patch, direction),
+assigns each ray to the submodel of its (jittered) origin and moves 20% of rays to a neighbouring submodel, asks
+the teacher for colours and its ray intervals with weights, and renders the student on exactly those intervals.
+Losses: RMSE + 1.5 DSSIM (3x3 patches) on colour, an L1 geometry loss between the student's and the teacher's
+compositing weights on the shared intervals (multiplier 0.015 -> 0.001), L2 total variation across the
+deferred-MLP lattice (0.1) and, with K > 1, the consistency loss between a ray's home submodel and a neighbour.
+Alpha culling ramps from 5e-4 to 5e-3 (log-linear) over the middle of training, as the authors'.
+
+One departure: the first ``mse_warmup`` of the run uses an MSE colour loss without DSSIM. On object scenes with a
+plain background (lego) most rays are empty, and in SNeRG mode their colour can only come from the deferred MLP;
+under the L1-like RMSE the MLP learns "white everywhere" within a few steps, saturates, and the diffuse colour can
+then only make things worse, so density collapses. MSE weights the few wrong foreground rays enough to avoid that.
+
+A student folder holds ``config.json`` (this config, the partition, the teacher it came from), ``student.pt``
+(checkpoint) and ``metrics.jsonl``; ``--resume`` continues it, Ctrl-C saves it.
+"""
+from __future__ import annotations
+
+import json
+import math
+import time
+from dataclasses import dataclass, field as dc_field
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from nerfbake.data.formats import load_dataset
+from nerfbake.data.pixels import PixelStore
+from nerfbake.eval.metrics import patch_dssim
+from nerfbake.progress import console, progress_bar
+from nerfbake.smerf.partition import Partition, PartitionError
+from nerfbake.smerf.student import Student, StudentConfig
+from nerfbake.train.loop import (DataParallel, Interrupt, RateMeter, git_revision, load_checkpoint, log_linear_lr,
+                                 save_checkpoint, step_generator, tensorboard_writer, to_jsonable, write_json_atomic)
+
+CHECKPOINT = "student.pt"
+CONFIG = "config.json"
+
+
+@dataclass
+class DistillConfig:
+    preset: str = "cpu-small"
+    k: int = 1
+    steps: int = 5000
+    batch_patches: int = 512  # 3x3 patches per step (4608 rays)
+    lr_grid: float = 5e-2
+    lr_grid_final: float = 2e-3
+    lr_mlp: float = 5e-3
+    lr_mlp_final: float = 5e-4
+    warmup_steps: int = 100
+    rgb_mult: float = 1.0
+    dssim_mult: float = 1.5
+    mse_warmup: float = 0.15  # fraction of the run with an MSE colour loss first (see distill's docstring)
+    geometry_mult: tuple[float, float] = (0.015, 0.001)  # linear over the run
+    mlp_tv_mult: float = 0.1
+    consistency_mult: float = 1.0  # K > 1 only
+    jitter_origin: float = 0.03  # Gaussian sigma, partition-cube units (per ray)
+    jitter_direction: float = 0.03  # per patch
+    reassign_fraction: float = 0.2
+    cull_alpha: tuple[float, float] = (5e-4, 5e-3)
+    cull_window: tuple[float, float] = (0.4, 0.8)  # fractions of the run over which culling ramps up
+    quantize: bool = True
+    seed: int = 0
+    checkpoint_every: int = 500
+    val_every: int = 500
+    tensorboard: bool = False
+    student: StudentConfig = dc_field(default_factory=StudentConfig)
+
+    def cull_threshold(self, step: int) -> float:
+        a, b = (int(f * self.steps) for f in self.cull_window)
+        if step < a:
+            return 0.0
+        frac = min(1.0, (step - a) / max(1, b - a))
+        lo, hi = self.cull_alpha
+        return lo ** (1 - frac) * hi ** frac
+
+    def geometry_weight(self, step: int) -> float:
+        frac = min(1.0, step / max(1, self.steps))
+        return self.geometry_mult[0] + (self.geometry_mult[1] - self.geometry_mult[0]) * frac
+
+
+def distill_preset(name: str, k: int = 1) -> DistillConfig:
+    if name == "cpu-small":
+        return DistillConfig(preset=name, k=k)
+    if name == "paper":  # SMERF's 50k steps of 65k rays at R = 2048 / L = 512 (explicit grids need ~17 GB per submodel)
+        return DistillConfig(preset=name, k=k, steps=50_000, batch_patches=7282, checkpoint_every=5000, val_every=5000,
+                             cull_window=(0.4, 0.8), student=StudentConfig(sparse_resolution=512, triplane_resolution=2048))
+    raise ValueError(f"unknown preset {name!r}; choose cpu-small or paper")
+
+
+def config_from_dict(d: dict) -> DistillConfig:
+    d = dict(d)
+    student = StudentConfig(**d.pop("student"))
+    for key in ("geometry_mult", "cull_alpha", "cull_window"):
+        d[key] = tuple(d[key])
+    return DistillConfig(**d, student=student)
+
+
+def load_student(path: str | Path) -> tuple[Student, DistillConfig, dict]:
+    """(student, config, folder metadata) from a student folder, with clear errors."""
+    path = Path(path)
+    cfg_path = path / CONFIG
+    if not cfg_path.is_file():
+        raise FileNotFoundError(f"{cfg_path}: missing; {path} is not a student folder (nerfbake distill --out)")
+    meta = json.loads(cfg_path.read_text())
+    if meta.get("kind") != "smerf-student":
+        raise ValueError(f"{cfg_path}: not a SMERF student (kind {meta.get('kind')!r}); pass the folder written by nerfbake distill")
+    cfg = config_from_dict(meta["distill"])
+    student = Student(cfg.student, Partition.from_json(meta["partition"]), cfg.seed)
+    state = load_checkpoint(path / CHECKPOINT)
+    student.load_state_dict(state["model"])
+    return student.eval(), cfg, meta
+
+
+def charbonnier(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """The authors' per-ray "RMSE": mean of sqrt(1e-6 + d^2)."""
+    return torch.sqrt(1e-6 + (a - b) ** 2).mean()
+
+
+def jitter_patches(rays: dict, cfg: DistillConfig, partition: Partition, gen: torch.Generator) -> dict:
+    """Gaussian origin jitter per ray; one small random direction offset per 3x3 patch."""
+    o, d = rays["origins"], rays["directions"]
+    n = o.shape[0]
+    o = o + torch.randn(n, 3, generator=gen) * (cfg.jitter_origin / partition.scale)
+    patch_offset = torch.randn(n // 9, 1, 3, generator=gen) * cfg.jitter_direction
+    d = (d.view(-1, 9, 3) + patch_offset).view(n, 3)
+    return {**rays, "origins": o, "directions": d / d.norm(dim=-1, keepdim=True)}
+
+
+def _neighbour_table(partition: Partition) -> list[list[int]]:
+    return [partition.neighbours(p) for p in range(partition.num_alive)]
+
+
+def reassign(params_idx: np.ndarray, partition: Partition, fraction: float, gen: torch.Generator) -> np.ndarray:
+    """Move a random ``fraction`` of rays to a random alive neighbour of their submodel (where one exists)."""
+    out = params_idx.copy()
+    draw = torch.rand(len(out), generator=gen).numpy()
+    pick = torch.rand(len(out), generator=gen).numpy()
+    if partition.num_alive < 2 or fraction <= 0:
+        return out
+    table = _neighbour_table(partition)
+    for i in np.nonzero(draw < fraction)[0]:
+        nb = table[int(out[i])]
+        if nb:
+            out[i] = nb[int(pick[i] * len(nb))]
+    return out
+
+
+def random_neighbour(params_idx: np.ndarray, partition: Partition, gen: torch.Generator) -> np.ndarray:
+    """For each ray a random alive neighbour of its submodel, or -1 where it has none."""
+    pick = torch.rand(len(params_idx), generator=gen).numpy()
+    table = _neighbour_table(partition)
+    counts = np.array([len(t) for t in table])[params_idx]
+    padded = np.array([t + [-1] * (26 - len(t)) for t in table])
+    choice = np.minimum((pick * counts).astype(int), np.maximum(counts - 1, 0))
+    out = padded[params_idx, choice]
+    return np.where(counts > 0, out, -1)
+
+
+def teacher_background(ds) -> tuple[float, float, float]:
+    return tuple(ds.background or (1.0, 1.0, 1.0))
+
+
+def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume: bool = False,
+            stop_at: int | None = None) -> Path:
+    from nerfbake.teacher.train import load_teacher
+
+    out = Path(out)
+    dp = DataParallel()
+    teacher, tcfg, tmeta, _ = load_teacher(Path(teacher_run))
+    teacher.to(dp.device)
+    ds = load_dataset(tmeta["data"], downscale=tcfg.downscale)
+    train_idx = ds.split("train")
+    origins = np.stack([ds.frames[i].camera.origin for i in train_idx])
+    partition = Partition.from_cameras(origins, cfg.k)
+    if (out / CONFIG).is_file() and not resume and dp.is_main:
+        if json.loads((out / CONFIG).read_text()).get("complete"):
+            raise ValueError(f"{out}: already holds a finished student; pass --resume to continue or choose another --out")
+    torch.manual_seed(cfg.seed)
+    student = Student(cfg.student, partition, cfg.seed).to(dp.device)
+    opt = torch.optim.Adam([{"params": [student.sparse, student.planes], "lr": cfg.lr_grid},
+                            {"params": list(student.mlp.parameters()), "lr": cfg.lr_mlp}],
+                           betas=(0.9, 0.99), eps=1e-15, fused=True)
+    start = 0
+    ckpt = out / CHECKPOINT
+    if resume and ckpt.is_file():
+        state = load_checkpoint(ckpt)
+        student.load_state_dict(state["model"])
+        opt.load_state_dict(state["optimizer"])
+        start = int(state["step"])
+        if dp.is_main:
+            console.print(f"resuming {out} at step {start}")
+    meta = {"kind": "smerf-student", "distill": to_jsonable(cfg), "partition": partition.to_json(),
+            "teacher": str(Path(teacher_run).resolve()), "data": tmeta["data"], "downscale": tcfg.downscale,
+            "num_submodels": partition.num_alive, "git": git_revision(), "world_size": dp.world, "complete": False}
+    if dp.is_main:
+        out.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(out / CONFIG, meta)
+    with progress_bar("loading images", len(train_idx), unit="img") as adv:
+        store = PixelStore(ds, "train", progress=lambda k, n: adv())
+    bg = teacher_background(ds)
+    val_index = ds.split("val" if "val" in ds.splits else "test")[0]
+
+    def state_dict(step):
+        return {"model": student.state_dict(), "optimizer": opt.state_dict(), "step": step, "kind": "smerf-student"}
+
+    rate = RateMeter()
+    step = start
+    n_rays = cfg.batch_patches * 9
+    t_start = time.time()
+    with Interrupt() as interrupt, progress_bar(f"distill K={cfg.k}", cfg.steps, unit="step") as advance:
+        advance(start)
+        log = open(out / "metrics.jsonl", "a") if dp.is_main else None
+        tb = tensorboard_writer(out) if dp.is_main and cfg.tensorboard else None
+        try:
+            while step < cfg.steps:
+                if interrupt.requested or (stop_at is not None and step >= stop_at):
+                    break
+                gen = step_generator(cfg.seed, step)
+                lr_g = log_linear_lr(step, cfg.steps, cfg.lr_grid, cfg.lr_grid_final, cfg.warmup_steps)
+                lr_m = log_linear_lr(step, cfg.steps, cfg.lr_mlp, cfg.lr_mlp_final, cfg.warmup_steps)
+                opt.param_groups[0]["lr"], opt.param_groups[1]["lr"] = lr_g, lr_m
+                drawn = store.sample_rays(n_rays, gen, patch=3)
+                rays = jitter_patches(drawn, cfg, partition, gen)
+                home = partition.assign(rays["origins"].double().numpy())
+                params_idx = reassign(home, partition, cfg.reassign_fraction, gen)
+                noise = torch.rand(n_rays, teacher.noise_dims, generator=gen)
+                neighbour = random_neighbour(params_idx, partition, gen) if partition.num_alive > 1 else None
+                mine = dp.shard(cfg.batch_patches)
+                sl = slice(mine.start * 9, mine.stop * 9)
+                o, d = rays["origins"][sl].to(dp.device), rays["directions"][sl].to(dp.device)
+                cams = drawn["origins"][sl].to(dp.device)  # un-jittered camera centres: where the MLP lattice is read
+                with torch.no_grad():
+                    tout = teacher.render_rays(o, d, torch.tensor(bg, device=dp.device).expand(o.shape[0], 3),
+                                               noise=noise[sl].to(dp.device))
+                pidx = torch.as_tensor(params_idx[sl], device=dp.device)
+                s_out = student.render(o, d, pidx, tout["t0"], tout["t1"], tout["ray_idx"], cfg.cull_threshold(step),
+                                       cfg.quantize, cams)
+                share = (sl.stop - sl.start) / n_rays  # this rank's share of the global mean
+                target = tout["rgb"]
+                ssim_l = patch_dssim(s_out["rgb"].view(-1, 3, 3, 3), target.view(-1, 3, 3, 3))
+                if step < cfg.mse_warmup * cfg.steps:
+                    rgb_l = 10.0 * ((s_out["rgb"] - target) ** 2).mean()
+                    ssim_l = ssim_l * 0
+                else:
+                    rgb_l = charbonnier(s_out["rgb"], target)
+                geo_l = (s_out["w"] - tout["w"]).abs().sum() / o.shape[0]
+                loss = share * (cfg.rgb_mult * rgb_l + cfg.dssim_mult * ssim_l + cfg.geometry_weight(step) * geo_l)
+                loss = loss + cfg.mlp_tv_mult * student.mlp.tv_loss() / dp.world
+                terms = {"rgb": float(rgb_l.detach()), "dssim": float(ssim_l.detach()), "geometry": float(geo_l.detach())}
+                if neighbour is not None:
+                    nb = torch.as_tensor(neighbour[sl], device=dp.device)
+                    keep = (nb >= 0)
+                    if keep.any():
+                        nb = torch.where(keep, nb, pidx)
+                        alt = student.render(o, d, nb, tout["t0"], tout["t1"], tout["ray_idx"], cfg.cull_threshold(step),
+                                             cfg.quantize, cams)
+                        cons = charbonnier(alt["rgb"][keep], s_out["rgb"][keep])
+                        loss = loss + share * cfg.consistency_mult * cons
+                        terms["consistency"] = float(cons)
+                opt.zero_grad(set_to_none=False)
+                loss.backward()
+                dp.all_reduce_grads(student.parameters())
+                opt.step()
+                step += 1
+                mse = dp.all_reduce_sum(float(((s_out["rgb"].detach().clamp(0, 1) - target) ** 2).sum())) / (3 * n_rays)
+                psnr = -10 * math.log10(max(mse, 1e-10))
+                rays_s = rate.add(n_rays)
+                advance(1)
+                if dp.is_main and (step % 25 == 0 or step == cfg.steps):
+                    rec = {"step": step, "loss": float(loss.detach()), "psnr_vs_teacher": psnr, "lr_grid": lr_g,
+                           "rays_per_s": rays_s, "cull_alpha": cfg.cull_threshold(step), **terms, "time": time.time()}
+                    log.write(json.dumps(rec) + "\n")
+                    log.flush()
+                    if tb is not None:
+                        for k, v in rec.items():
+                            if k not in ("step", "time"):
+                                tb.add_scalar(f"train/{k}", v, step)
+                    if step % 250 == 0:
+                        console.print(f"step {step:6d}  loss {rec['loss']:.5f}  psnr(teacher) {psnr:5.2f}  {rays_s:7.0f} rays/s",
+                                      highlight=False)
+                if dp.is_main and cfg.val_every and step % cfg.val_every == 0:
+                    vpsnr = validate(student, teacher, ds, val_index, out / "val", step, bg)
+                    log.write(json.dumps({"step": step, "val_psnr": vpsnr}) + "\n")
+                    if tb is not None:
+                        tb.add_scalar("val/psnr", vpsnr, step)
+                    console.print(f"step {step:6d}  validation PSNR {vpsnr:.2f} dB -> {out / 'val'}")
+                if dp.is_main and step % cfg.checkpoint_every == 0 and step < cfg.steps:
+                    save_checkpoint(ckpt, state_dict(step))
+        finally:
+            if log is not None:
+                log.close()
+            if tb is not None:
+                tb.close()
+    if dp.is_main:
+        save_checkpoint(ckpt, state_dict(step))
+        meta["complete"] = step >= cfg.steps
+        meta["steps_done"] = step
+        meta["seconds"] = meta.get("seconds", 0.0) + (time.time() - t_start)
+        write_json_atomic(out / CONFIG, meta)
+    dp.barrier()
+    if step < cfg.steps:
+        console.print(f"stopped at step {step}; checkpoint saved — continue with --resume")
+    return out
+
+
+@torch.no_grad()
+def render_student_camera(student: Student, teacher, camera, background, chunk: int = 1 << 13,
+                          params_idx: int | None = None) -> np.ndarray:
+    """(H, W, 3) image of the student on the teacher's (deterministic) intervals; the camera's submodel is chosen
+    from its position (inf-norm rule) unless ``params_idx`` is given."""
+    from nerfbake.data.rays import camera_rays
+
+    rays = camera_rays(camera)
+    o, d = rays["origins"].reshape(-1, 3), rays["directions"].reshape(-1, 3)
+    dev = student.sparse.device
+    if params_idx is None:
+        params_idx = int(student.partition.assign(camera.origin[None], strict=True)[0])
+    out = []
+    for a in range(0, o.shape[0], chunk):
+        oc, dc = o[a:a + chunk].to(dev), d[a:a + chunk].to(dev)
+        bg = torch.tensor(background, device=dev).expand(oc.shape[0], 3)
+        t = teacher.render_rays(oc, dc, bg)
+        pidx = torch.full((oc.shape[0],), params_idx, dtype=torch.long, device=dev)
+        out.append(student.render(oc, dc, pidx, t["t0"], t["t1"], t["ray_idx"])["rgb"].clamp(0, 1).cpu())
+    return torch.cat(out).reshape(camera.height, camera.width, 3).numpy()
+
+
+def validate(student, teacher, ds, index: int, out_dir: Path, step: int, background) -> float:
+    """Render one held-out view at <= 200 px wide next to its ground truth; returns PSNR."""
+    import imageio.v3 as iio
+
+    from nerfbake.data.images import area_downscale
+    from nerfbake.eval.views import to_png
+
+    camera = ds.frames[index].camera
+    factor = max(1.0, camera.width / 200)
+    cam = camera.scaled(factor)
+    try:
+        pred = render_student_camera(student, teacher, cam, background)
+    except PartitionError:
+        return float("nan")
+    gt = ds.image(index)
+    if factor > 1:
+        gt = area_downscale(np.round(gt * 255).astype(np.uint8), (cam.width, cam.height)).astype(np.float32) / 255
+    out_dir.mkdir(parents=True, exist_ok=True)
+    iio.imwrite(out_dir / f"step_{step:07d}.png", to_png(np.concatenate([pred, gt], axis=1)))
+    return float(-10 * np.log10(max(np.mean((pred - gt) ** 2), 1e-10)))

@@ -1,0 +1,223 @@
+"""The SMERF student, distillation and baking: the feature lookup against a plain torch version and finite
+differences, a tiny distillation that learns and resumes exactly, baked assets that follow the format rules and
+hold exactly the student's quantised values, the baked renderer agreeing with the student, and clear errors."""
+import gzip
+import json
+from dataclasses import replace
+
+import numpy as np
+import pytest
+import torch
+
+from nerfbake.cli import main
+from nerfbake.kernels.merf_grid import merf_lookup, merf_lookup_reference
+from nerfbake.smerf.assets import AssetError, SceneAssets, load_submodel
+from nerfbake.smerf.bake import BakeError, bake_student, distance_grid, pack_bits, quantize_channels, atlas_shape
+from nerfbake.smerf.distill import DistillConfig, distill, load_student
+from nerfbake.smerf.partition import PartitionError
+from nerfbake.smerf.student import StudentConfig
+from nerfbake.smerf.validate import asset_problems
+
+
+# --- the lookup kernel --------------------------------------------------------------------------------------------
+
+def _grids(s=8, t=16, n=2, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    sparse = torch.nn.Parameter(torch.randn(n * s ** 3, 8, generator=g) * 3)
+    planes = torch.nn.Parameter(torch.randn(n * 3 * t * t, 8, generator=g) * 3)
+    z = torch.rand(500, 3, generator=g) * 4.4 - 2.2  # includes points past the grid edge (clamp-to-edge)
+    sm = torch.randint(0, n, (500,), generator=g)
+    return sparse, planes, z, sm
+
+
+@pytest.mark.parametrize("quantize", [False, True])
+def test_lookup_kernel_matches_reference_values_and_gradients(quantize):
+    sparse, planes, z, sm = _grids()
+    a, b = merf_lookup(z, sm, sparse, planes, 8, 16, quantize)
+    c, d = merf_lookup_reference(z, sm, sparse, planes, 8, 16, quantize)
+    assert torch.allclose(a, c, atol=1e-5) and torch.allclose(b, d, atol=1e-5)
+    ga, gb = torch.randn_like(a), torch.randn_like(b)
+    (a * ga + b * gb).sum().backward()
+    mine = sparse.grad.clone(), planes.grad.clone()
+    sparse.grad = planes.grad = None
+    (c * ga + d * gb).sum().backward()
+    assert torch.allclose(mine[0], sparse.grad, atol=1e-5) and torch.allclose(mine[1], planes.grad, atol=1e-5)
+
+
+def test_lookup_gradient_matches_finite_differences():
+    sparse, planes, z, sm = _grids(seed=1)
+    a, b = merf_lookup(z, sm, sparse, planes, 8, 16, False)
+    (a.sum() + b.sum()).backward()
+    for param, row in ((sparse, int(torch.nonzero(sparse.grad[:, 3])[0])), (planes, int(torch.nonzero(planes.grad[:, 5])[0]))):
+        ch = 3 if param is sparse else 5
+        with torch.no_grad():
+            eps = 1e-2
+            param[row, ch] += eps
+            a1, b1 = merf_lookup(z, sm, sparse, planes, 8, 16, False)
+            param[row, ch] -= 2 * eps
+            a0, b0 = merf_lookup(z, sm, sparse, planes, 8, 16, False)
+            param[row, ch] += eps
+        fd = float((a1.sum() + b1.sum() - a0.sum() - b0.sum()) / (2 * eps))
+        assert abs(fd - float(param.grad[row, ch])) < 1e-2 * max(1.0, abs(fd))
+
+
+def test_occupancy_packing_and_distance_grid_follow_the_viewer_rules():
+    fine = torch.zeros(4, 4, 4, dtype=torch.bool)
+    fine[1, 0, 1] = True  # cell (0,0,0), sub-cell (a, b, c) = (1, 0, 1) -> bit 2^(c + 2b + 4a) = 32
+    fine[2, 3, 2] = True  # cell (1,1,1), sub-cell (0, 1, 0) -> bit 4
+    packed = pack_bits(fine)
+    assert packed[0, 0, 0] == 32 and packed[1, 1, 1] == 4 and packed.sum() == 36
+    occ = torch.zeros(6, 6, 6, dtype=torch.bool)
+    occ[0, 0, 0] = True
+    d = distance_grid(occ)
+    assert d[0, 0, 0] == 0 and d[1, 1, 1] == 1 and d[3, 0, 0] == 3 and d[5, 5, 5] == 5
+    assert atlas_shape(1) == (1, 1, 1) and np.prod(atlas_shape(100)) >= 100
+    w, h, dpt = atlas_shape(5000)
+    assert w >= h >= dpt and w <= 227
+
+
+# --- distil, bake, evaluate on the tiny scene ----------------------------------------------------------------------
+
+def tiny_distill_config(steps=60) -> DistillConfig:
+    return DistillConfig(preset="test", steps=steps, batch_patches=64, checkpoint_every=20, val_every=0, warmup_steps=5,
+                         student=StudentConfig(sparse_resolution=32, triplane_resolution=128))
+
+
+@pytest.fixture(scope="module")
+def tiny_student(tiny_teacher, tmp_path_factory):
+    return distill(tiny_teacher, tmp_path_factory.mktemp("student") / "s", tiny_distill_config())
+
+
+def test_distillation_learns_and_resumes_exactly(tiny_teacher, tiny_student, tmp_path):
+    log = [json.loads(line) for line in (tiny_student / "metrics.jsonl").open()]
+    first, last = log[0]["psnr_vs_teacher"], log[-1]["psnr_vs_teacher"]
+    assert last > first + 3, (first, last)
+    cfg = tiny_distill_config(steps=30)
+    a = distill(tiny_teacher, tmp_path / "a", cfg)
+    distill(tiny_teacher, tmp_path / "b", cfg, stop_at=20)
+    assert not json.loads((tmp_path / "b" / "config.json").read_text())["complete"]
+    distill(tiny_teacher, tmp_path / "b", cfg, resume=True)
+    sa, sb = load_student(a)[0], load_student(tmp_path / "b")[0]
+    assert torch.equal(sa.sparse, sb.sparse) and torch.equal(sa.planes, sb.planes)
+
+
+@pytest.fixture(scope="module")
+def tiny_assets_dir(tiny_student, tmp_path_factory):
+    out = tmp_path_factory.mktemp("assets") / "baked"
+    bake_student(tiny_student, out, stride=1)
+    return out
+
+
+def test_baked_assets_follow_the_format_rules_and_hold_the_students_values(tiny_student, tiny_assets_dir):
+    assert asset_problems(tiny_assets_dir) == []
+    student = load_student(tiny_student)[0]
+    sm = load_submodel(tiny_assets_dir / "sm_000")
+    s, t = 32, 128
+    want_sparse = quantize_channels(student.sparse.detach().view(s, s, s, 8))
+    idx = sm.block_indices.reshape(-1, 3)
+    alive = np.nonzero((idx < 255).all(1))[0]
+    assert len(alive) > 0
+    nb = s // 8
+    for b in alive[:: max(1, len(alive) // 20)]:
+        bu, bv, bw = np.unravel_index(b, (nb, nb, nb))
+        au, av, aw = (int(x) * 9 for x in idx[b])
+        cu, cv, cw = (np.minimum(c * 8 + np.arange(9), s - 1) for c in (bu, bv, bw))
+        want = want_sparse[np.ix_(cu, cv, cw)]
+        assert np.array_equal(sm.atlas_rgb[au:au + 9, av:av + 9, aw:aw + 9], want[..., 1:4])
+        assert np.array_equal(sm.atlas_density[au:au + 9, av:av + 9, aw:aw + 9], want[..., [0, 7]])
+        assert np.array_equal(sm.atlas_features[au:au + 9, av:av + 9, aw:aw + 9], want[..., 4:7])
+    planes = quantize_channels(student.planes.detach().view(3, t, t, 8))
+    assert np.array_equal(sm.plane_rgb, planes[..., 1:4]) and np.array_equal(sm.plane_features, planes[..., 4:8])
+    assert np.array_equal(sm.plane_density, planes[..., :1])
+    # every alive voxel's occupancy cell is set and lies in an alive block
+    assert sm.occupancy[8].any() and (sm.distance[8][sm.occupancy[8] > 0] == 0).all()
+
+
+def test_baked_renderer_agrees_with_the_student(tiny_student, tiny_assets_dir, tiny_scene):
+    from nerfbake.data.formats import load_dataset
+    from nerfbake.smerf.bake import viewer_camera
+    from nerfbake.smerf.baked_render import render_baked
+    from nerfbake.smerf.distill import render_student_camera
+    from nerfbake.teacher.train import load_teacher
+
+    student, cfg, meta = load_student(tiny_student)
+    teacher = load_teacher(meta["teacher"])[0]
+    ds = load_dataset(tiny_scene)
+    cam = ds.frames[ds.split("test")[0]].camera
+    a = render_student_camera(student, teacher, cam, (1.0, 1.0, 1.0))
+    b = render_baked(SceneAssets.open(tiny_assets_dir), viewer_camera(cam, student.partition))
+    psnr = -10 * np.log10(np.mean((a - b) ** 2))
+    assert psnr > 20, psnr
+
+
+def test_cli_eval_prints_the_contract_keys(tiny_student, tiny_assets_dir, capsys):
+    keys = ("psnr", "ssim", "lpips_vgg", "ms_per_frame", "num_submodels", "disk_bytes", "peak_submodel_bytes")
+    for flag, path in (("--student", tiny_student), ("--assets", tiny_assets_dir)):
+        assert main(["smerf", "eval", flag, str(path), "--max-views", "1", "--no-images", "--json"]) == 0
+        out = json.loads(capsys.readouterr().out)
+        assert all(k in out for k in keys) and out["num_submodels"] == 1 and out["psnr"] > 10
+    assert main(["smerf", "info", str(tiny_assets_dir), "--json"]) == 0
+    assert json.loads(capsys.readouterr().out)["format_problems"] == []
+
+
+def test_bad_input_gives_clear_errors_and_no_half_written_output(tiny_student, tiny_assets_dir, tmp_path, capsys,
+                                                                  tiny_scene):
+    # a student folder where a teacher run is expected
+    assert main(["distill", "--teacher", str(tiny_student), "--out", str(tmp_path / "x"), "--steps", "1"]) == 2
+    assert "not a teacher run folder" in capsys.readouterr().err
+    # a teacher run where a student is expected
+    assert main(["bake", "--student", str(tiny_scene), "--out", str(tmp_path / "y")]) == 2
+    assert "not a student folder" in capsys.readouterr().err and not (tmp_path / "y").exists()
+    # a threshold nothing passes: the bake fails and leaves nothing behind
+    meta = json.loads((tiny_student / "config.json").read_text())
+    meta["distill"]["cull_alpha"] = [0.5, 2.0]
+    broken = tmp_path / "broken_student"
+    broken.mkdir()
+    (broken / "config.json").write_text(json.dumps(meta))
+    (broken / "student.pt").write_bytes((tiny_student / "student.pt").read_bytes())
+    with pytest.raises(BakeError, match="no voxel passes"):
+        bake_student(broken, tmp_path / "z")
+    assert not (tmp_path / "z").exists() and not list(tmp_path.glob(".z.*"))
+    # a camera outside the partition cube
+    student = load_student(tiny_student)[0]
+    with pytest.raises(PartitionError, match="outside the partition cube"):
+        student.partition.assign(np.array([[100.0, 0, 0]]), strict=True)
+    # a truncated asset file
+    import shutil
+    copy = tmp_path / "assets"
+    shutil.copytree(tiny_assets_dir, copy)
+    f = copy / "sm_000" / "plane_rgb_1.raw.gz"
+    f.write_bytes(gzip.compress(gzip.decompress(f.read_bytes())[:-10]))
+    with pytest.raises(AssetError, match="plane_rgb_1.raw.gz.*truncated"):
+        load_submodel(copy / "sm_000")
+    assert any("plane_rgb_1" in p for p in asset_problems(copy))
+
+
+# --- K = 2 on the two-room scene ----------------------------------------------------------------------------------
+
+@pytest.fixture(scope="module")
+def rooms_teacher(tmp_path_factory):
+    from nerfbake.data.synth import SynthConfig, render_dataset
+    from nerfbake.teacher.train import train_teacher
+    from tests.helpers import tiny_config
+
+    scene = render_dataset(SynthConfig("rooms", 32, 32, views=12, spp=4, seed=0), tmp_path_factory.mktemp("rooms") / "scene")
+    cfg = replace(tiny_config(steps=80), checkpoint_every=1000, val_every=10_000)
+    return train_teacher(scene, tmp_path_factory.mktemp("rooms_teacher") / "run", cfg)
+
+
+def test_two_rooms_with_k2_bake_one_valid_folder_per_alive_submodel(rooms_teacher, tmp_path):
+    cfg = replace(tiny_distill_config(steps=20), k=2)
+    student_dir = distill(rooms_teacher, tmp_path / "student", cfg)
+    student = load_student(student_dir)[0]
+    part = student.partition
+    assert part.num_alive >= 2 and student.sparse.shape[0] == part.num_alive * 32 ** 3
+    log = [json.loads(line) for line in (student_dir / "metrics.jsonl").open()]
+    assert "consistency" in log[-1]  # the neighbour-consistency loss ran
+    bake_student(student_dir, tmp_path / "assets")
+    folders = sorted(p.name for p in (tmp_path / "assets").glob("sm_*"))
+    assert folders == [f"sm_{i:03d}" for i in part.params_to_sm]
+    assert asset_problems(tmp_path / "assets") == []
+    scene = SceneAssets.open(tmp_path / "assets")
+    assert scene.params["num_local_submodels"] == part.num_alive and scene.params["num_submodels"] == 8
+    assert scene.mlp["ResampleDense_0/kernel"].shape[0] == part.num_alive
