@@ -80,6 +80,7 @@ def test_occupancy_packing_and_distance_grid_follow_the_viewer_rules():
 
 def tiny_distill_config(steps=60) -> DistillConfig:
     return DistillConfig(preset="test", steps=steps, batch_patches=64, checkpoint_every=20, val_every=0, warmup_steps=5,
+                         empty_space_points=4096,
                          student=StudentConfig(sparse_resolution=32, triplane_resolution=128))
 
 

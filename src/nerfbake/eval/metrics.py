@@ -45,8 +45,10 @@ def _filter_valid(x: torch.Tensor, k: torch.Tensor) -> torch.Tensor:
 
 
 def ssim_map(a, b, window: int = 11, sigma: float = 1.5, k1: float = 0.01, k2: float = 0.03,
-             filter_fn=None) -> torch.Tensor:
-    """Per-pixel SSIM, (N, C, H', W'). ``filter_fn`` replaces the Gaussian (e.g. a box filter on 3x3 patches)."""
+             filter_fn=None, clip: bool = True) -> torch.Tensor:
+    """Per-pixel SSIM, (N, C, H', W'). ``filter_fn`` replaces the Gaussian (e.g. a box filter on 3x3 patches).
+    ``clip`` bounds the statistics as mip-NeRF's metric does; losses turn it off, because the square root's
+    gradient is infinite on flat patches (variance 0) and would make the loss NaN."""
     a, b = _as_batch(a), _as_batch(b)
     x, y = a.permute(0, 3, 1, 2), b.permute(0, 3, 1, 2)
     if filter_fn is None:
@@ -57,8 +59,9 @@ def ssim_map(a, b, window: int = 11, sigma: float = 1.5, k1: float = 0.01, k2: f
     syy = filter_fn(y * y) - mu_y**2
     sxy = filter_fn(x * y) - mu_x * mu_y
     # Clip the variances as mip-NeRF does; float error can make them slightly negative.
-    sxx, syy = sxx.clamp_min(0), syy.clamp_min(0)
-    sxy = torch.sign(sxy) * torch.minimum(torch.sqrt(sxx * syy), sxy.abs())
+    if clip:
+        sxx, syy = sxx.clamp_min(0), syy.clamp_min(0)
+        sxy = torch.sign(sxy) * torch.minimum(torch.sqrt(sxx * syy), sxy.abs())
     c1, c2 = k1**2, k2**2
     num = (2 * mu_x * mu_y + c1) * (2 * sxy + c2)
     den = (mu_x**2 + mu_y**2 + c1) * (sxx + syy + c2)
@@ -72,7 +75,7 @@ def ssim(a, b) -> torch.Tensor:
 
 def dssim(a, b, filter_fn=None) -> torch.Tensor:
     """Structural dissimilarity (1 - SSIM) / 2, averaged over everything: a differentiable loss."""
-    return (1.0 - ssim_map(a, b, filter_fn=filter_fn).mean()) / 2.0
+    return (1.0 - ssim_map(a, b, filter_fn=filter_fn, clip=False).mean()) / 2.0
 
 
 def patch_dssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

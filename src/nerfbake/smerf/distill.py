@@ -56,6 +56,8 @@ class DistillConfig:
     mse_warmup: float = 0.15  # fraction of the run with an MSE colour loss first (see distill's docstring)
     geometry_mult: tuple[float, float] = (0.015, 0.001)  # linear over the run
     mlp_tv_mult: float = 0.1
+    empty_space_mult: float = 1.0
+    empty_space_points: int = 1 << 15
     consistency_mult: float = 1.0  # K > 1 only
     jitter_origin: float = 0.03  # Gaussian sigma, partition-cube units (per ray)
     jitter_direction: float = 0.03  # per patch
@@ -118,6 +120,32 @@ def load_student(path: str | Path) -> tuple[Student, DistillConfig, dict]:
 def charbonnier(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """The authors' per-ray "RMSE": mean of sqrt(1e-6 + d^2)."""
     return torch.sqrt(1e-6 + (a - b) ** 2).mean()
+
+
+def empty_space_loss(student: Student, teacher, num_points: int, gen: torch.Generator, quantize: bool) -> torch.Tensor:
+    """Mean |alpha_student - alpha_teacher| at the viewer's step length, at random points of every submodel's
+    contracted volume (half of them in the uncontracted core). The ray losses only ever see the teacher's
+    intervals; without this the grids keep arbitrary density wherever the teacher never sampled, and the baked
+    scene, which the viewer marches densely, shows it as floaters (the role of the authors' sparsity loss)."""
+    dev = student.sparse.device
+    n = num_points
+    z = torch.rand(n, 3, generator=gen) * 4 - 2
+    z[: n // 2] *= 0.5
+    sm = torch.randint(0, student.partition.num_alive, (n,), generator=gen)
+    z, sm = z.to(dev), sm.to(dev)
+    world = student.world_from_contracted(z, sm)
+    with torch.no_grad():
+        sigma_t = teacher.density_at(world)
+    step = student.realtime_step(uncontract_norm(z))
+    alpha_t = 1 - torch.exp(-sigma_t * step / student.partition.scale)  # teacher sigma is per world unit
+    alpha_s = 1 - torch.exp(-student.features(z, sm, quantize)["density"] * step)
+    return (alpha_s - alpha_t).abs().mean()
+
+
+def uncontract_norm(z: torch.Tensor) -> torch.Tensor:
+    """Inf-norm of the uncontracted point of contracted points (how much the contraction squeezes there)."""
+    m = z.abs().amax(-1)
+    return torch.where(m > 1, 1 / (2 - m.clamp(max=2 - 1e-6)), torch.ones_like(m))
 
 
 def jitter_patches(rays: dict, cfg: DistillConfig, partition: Partition, gen: torch.Generator) -> dict:
@@ -250,7 +278,12 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
                 geo_l = (s_out["w"] - tout["w"]).abs().sum() / o.shape[0]
                 loss = share * (cfg.rgb_mult * rgb_l + cfg.dssim_mult * ssim_l + cfg.geometry_weight(step) * geo_l)
                 loss = loss + cfg.mlp_tv_mult * student.mlp.tv_loss() / dp.world
+                if cfg.empty_space_mult > 0:
+                    empty_l = empty_space_loss(student, teacher, cfg.empty_space_points, gen, cfg.quantize)
+                    loss = loss + cfg.empty_space_mult * empty_l / dp.world
                 terms = {"rgb": float(rgb_l.detach()), "dssim": float(ssim_l.detach()), "geometry": float(geo_l.detach())}
+                if cfg.empty_space_mult > 0:
+                    terms["empty_space"] = float(empty_l.detach())
                 if neighbour is not None:
                     nb = torch.as_tensor(neighbour[sl], device=dp.device)
                     keep = (nb >= 0)

@@ -21,7 +21,7 @@ import torch
 from torch import nn
 
 from nerfbake.kernels.merf_grid import CHANNELS, merf_lookup
-from nerfbake.render.contraction import contract
+from nerfbake.render.contraction import contract, uncontract
 from nerfbake.render.packed import packed_sum, packed_weights
 from nerfbake.smerf.deferred_mlp import GridMLP, deferred_inputs
 from nerfbake.smerf.partition import Partition
@@ -33,7 +33,7 @@ BACKGROUND = (0.5, 0.5, 0.5)  # the viewer's default background, entering only t
 @dataclass
 class StudentConfig:
     sparse_resolution: int = 128  # S (paper 512)
-    triplane_resolution: int = 512  # T (paper 2048)
+    triplane_resolution: int = 1024  # T (paper 2048)
     mlp_grid: int = 5  # P
     mlp_width: int = 16
     init_density: float = 1.0  # sparse density pre-activation at start: exp(1 - 1) = 1 per cube unit
@@ -65,6 +65,13 @@ class Student(nn.Module):
         local = (self.to_cube(world) - self.cell_centres[params_idx]) * self.partition.submodel_scale
         local = local @ VIEWER_FROM_TRAIN.to(local).T
         return contract(local), local.abs().amax(-1)
+
+    def world_from_contracted(self, z: torch.Tensor, params_idx: torch.Tensor) -> torch.Tensor:
+        """Inverse of :meth:`contracted`: contracted submodel points (viewer axes) -> world points."""
+        local = uncontract(z) @ VIEWER_FROM_TRAIN.to(z)  # the axis map is its own inverse (and symmetric)
+        cube = local / self.partition.submodel_scale + self.cell_centres[params_idx]
+        centre = torch.as_tensor(self.partition.centre, dtype=z.dtype, device=z.device)
+        return cube / self.partition.scale + centre
 
     def mlp_position(self, world_origins: torch.Tensor, params_idx: torch.Tensor) -> torch.Tensor:
         """Where the MLP lattice is read: the camera relative to its cell centre, in cell half-widths."""

@@ -50,6 +50,15 @@ class NeRFSHTeacherConfig:
     sparsity_points: int = 10000
 
 
+def _inside_occupied(grid, x: torch.Tensor) -> torch.Tensor:
+    """True where x lies in the box and in an occupied cell of the occupancy grid."""
+    g = grid.resolution
+    u = (x - grid.box_min) / (grid.box_max - grid.box_min)
+    inside = ((u >= 0) & (u < 1)).all(-1)
+    ijk = (u.clamp(0, 1 - 1e-6) * g).long()
+    return inside & grid.occupied[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
+
+
 def _shade(field_out, dirs):
     sigma, sh = field_out
     return sigma, eval_sh_color(sh, dirs)
@@ -78,6 +87,14 @@ class HashTeacher(nn.Module):
 
     def query(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return self.field(x)
+
+    def density_at(self, x: torch.Tensor) -> torch.Tensor:
+        """sigma at points as the renderer sees the scene: zero outside a bounded scene's box and in cells its
+        occupancy grid skips (the field was never fitted there, so raw values in empty cells mean nothing)."""
+        sigma = self.field.density(x)
+        if self.box.contracted:
+            return sigma
+        return torch.where(_inside_occupied(self.grid, x), sigma, torch.zeros_like(sigma))
 
     def before_step(self, step: int, generator: torch.Generator) -> None:
         if not self.box.contracted and step % self.cfg.grid_update_every == 0:
@@ -152,6 +169,13 @@ class NeRFSHTeacher(nn.Module):
 
     def query(self, x):
         return self.fine(x)
+
+    def density_at(self, x: torch.Tensor) -> torch.Tensor:
+        """sigma at points, zero outside the scene box (where the renderer never samples)."""
+        lo = torch.as_tensor(self.box.box_min, dtype=x.dtype, device=x.device)
+        hi = torch.as_tensor(self.box.box_max, dtype=x.dtype, device=x.device)
+        sigma = self.fine(x)[0]
+        return torch.where(((x >= lo) & (x <= hi)).all(-1), sigma, torch.zeros_like(sigma))
 
     def before_step(self, step, generator) -> None:
         pass
