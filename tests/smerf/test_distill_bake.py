@@ -89,17 +89,29 @@ def tiny_student(tiny_teacher, tmp_path_factory):
     return distill(tiny_teacher, tmp_path_factory.mktemp("student") / "s", tiny_distill_config())
 
 
-def test_distillation_learns_and_resumes_exactly(tiny_teacher, tiny_student, tmp_path):
-    log = [json.loads(line) for line in (tiny_student / "metrics.jsonl").open()]
-    first, last = log[0]["psnr_vs_teacher"], log[-1]["psnr_vs_teacher"]
-    assert last > first + 3, (first, last)
+def test_distillation_learns_and_resumes_to_the_same_student(tiny_teacher, tiny_student, tmp_path):
+    from nerfbake.data.formats import load_dataset
+    from nerfbake.smerf.distill import render_student_camera
+    from nerfbake.smerf.student import Student
+    from nerfbake.teacher.evaluate import render_camera
+    from nerfbake.teacher.train import load_teacher
+
+    trained, cfg, meta = load_student(tiny_student)
+    untrained = Student(cfg.student, trained.partition, cfg.seed)
+    teacher = load_teacher(tiny_teacher)[0]
+    ds = load_dataset(meta["data"])
+    cam = ds.frames[ds.split("test")[0]].camera
+    target = render_camera(teacher, cam)["rgb"]
+    err = [float(np.mean((render_student_camera(s, teacher, cam, (1.0, 1.0, 1.0)) - target) ** 2)) for s in (untrained, trained)]
+    assert 10 * np.log10(err[0] / err[1]) > 3, err  # at least 3 dB closer to the teacher than at the start
     cfg = tiny_distill_config(steps=30)
     a = distill(tiny_teacher, tmp_path / "a", cfg)
     distill(tiny_teacher, tmp_path / "b", cfg, stop_at=20)
     assert not json.loads((tmp_path / "b" / "config.json").read_text())["complete"]
     distill(tiny_teacher, tmp_path / "b", cfg, resume=True)
     sa, sb = load_student(a)[0], load_student(tmp_path / "b")[0]
-    assert torch.equal(sa.sparse, sb.sparse) and torch.equal(sa.planes, sb.planes)
+    for name, pa in sa.state_dict().items():  # bit-identical: every step's randomness comes from (seed, step)
+        assert torch.equal(pa, sb.state_dict()[name]), name
 
 
 @pytest.fixture(scope="module")
@@ -134,21 +146,50 @@ def test_baked_assets_follow_the_format_rules_and_hold_the_students_values(tiny_
     assert sm.occupancy[8].any() and (sm.distance[8][sm.occupancy[8] > 0] == 0).all()
 
 
-def test_baked_renderer_agrees_with_the_student(tiny_student, tiny_assets_dir, tiny_scene):
-    from nerfbake.data.formats import load_dataset
-    from nerfbake.smerf.bake import viewer_camera
+def test_baked_renderer_matches_the_student_on_a_smooth_scene(tmp_path):
+    """Bake a hand-made student (a smooth density blob with smoothly varying colour) and render one view both ways:
+    the student integrating densely along world rays, and the viewer-exact renderer marching the baked assets."""
+    from nerfbake.data.cameras import Camera
+    from nerfbake.data.rays import camera_rays
+    from nerfbake.data.synth import look_at
+    from nerfbake.smerf.bake import viewer_camera, write_submodel
     from nerfbake.smerf.baked_render import render_baked
-    from nerfbake.smerf.distill import render_student_camera
-    from nerfbake.teacher.train import load_teacher
+    from nerfbake.smerf.partition import Partition
+    from nerfbake.smerf.student import Student
 
-    student, cfg, meta = load_student(tiny_student)
-    teacher = load_teacher(meta["teacher"])[0]
-    ds = load_dataset(tiny_scene)
-    cam = ds.frames[ds.split("test")[0]].camera
-    a = render_student_camera(student, teacher, cam, (1.0, 1.0, 1.0))
-    b = render_baked(SceneAssets.open(tiny_assets_dir), viewer_camera(cam, student.partition))
-    psnr = -10 * np.log10(np.mean((a - b) ** 2))
-    assert psnr > 20, psnr
+    eyes = [np.array([4 * np.cos(a), 4 * np.sin(a), 1.0]) for a in np.linspace(0, 2 * np.pi, 8, endpoint=False)]
+    part = Partition.from_cameras(np.stack(eyes), 1)
+    s, t = 32, 128
+    student = Student(StudentConfig(s, t), part)
+    c = -2 + (torch.arange(s) + 0.5) * 4 / s
+    zz = torch.stack(torch.meshgrid(c, c, c, indexing="ij"), -1)  # voxel centres, viewer axes
+    blob = torch.exp(-(zz ** 2).sum(-1) / (2 * 0.35 ** 2))
+    with torch.no_grad():
+        grid = student.sparse.view(s, s, s, 8)
+        grid[..., 0] = 9 * blob - 3  # density pre-activation
+        grid[..., 1:4] = 1.5 * zz  # colour varies along each axis
+        grid[..., 7] = 1.0  # gate
+    ct = -2 + (torch.arange(t) + 0.5) * 4 / t
+    zt = torch.stack(torch.meshgrid(ct, ct, ct, indexing="ij"), -1)
+    alive = (zt ** 2).sum(-1) < 1.2 ** 2
+    write_submodel(tmp_path / "sm_000", student, 0, alive, student.mlp.export(), {"test_frames": []})
+    assert asset_problems(tmp_path) == []
+
+    cam = Camera(look_at(eyes[1], [0, 0, 0]), 32, 32, 40.0, 40.0, 16.0, 16.0)
+    baked = render_baked(SceneAssets.open(tmp_path), viewer_camera(cam, part), step_mult=4)
+    rays = camera_rays(cam)
+    o, d = rays["origins"].reshape(-1, 3), rays["directions"].reshape(-1, 3)
+    ts = torch.arange(2.0, 6.0, 0.004)
+    k = ts.shape[0] - 1
+    with torch.no_grad():
+        out = student.render(o, d, torch.zeros(o.shape[0], dtype=torch.long), ts[:-1].repeat(o.shape[0]),
+                             ts[1:].repeat(o.shape[0]), torch.arange(o.shape[0]).repeat_interleave(k),
+                             cameras=torch.as_tensor(cam.origin, dtype=torch.float32).expand(o.shape[0], 3))
+    ours = out["rgb"].clamp(0, 1).reshape(32, 32, 3).numpy()
+    assert out["acc"].max() > 0.5  # the blob is in view and mostly opaque at its centre
+    psnr = -10 * np.log10(np.mean((ours - baked) ** 2))
+    print("smooth-scene baked vs student PSNR", psnr)
+    assert psnr > 30, psnr
 
 
 def test_cli_eval_prints_the_contract_keys(tiny_student, tiny_assets_dir, capsys):
@@ -222,3 +263,38 @@ def test_two_rooms_with_k2_bake_one_valid_folder_per_alive_submodel(rooms_teache
     scene = SceneAssets.open(tmp_path / "assets")
     assert scene.params["num_local_submodels"] == part.num_alive and scene.params["num_submodels"] == 8
     assert scene.mlp["ResampleDense_0/kernel"].shape[0] == part.num_alive
+
+
+def test_two_processes_equal_one(tiny_teacher, tmp_path):
+    """torchrun with 2 CPU processes (gloo) distils to the same student as 1 process with the same global batch."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from nerfbake.train.loop import to_jsonable, write_json_atomic
+
+    write_json_atomic(tmp_path / "cfg.json", to_jsonable(tiny_distill_config(steps=4)))
+    args = ["distill", "--teacher", str(tiny_teacher), "--config", str(tmp_path / "cfg.json")]
+    env = {**os.environ, "NERFBAKE_THREADS": "1"}
+    one = subprocess.run([sys.executable, "-m", "nerfbake", *args, "--out", str(tmp_path / "one")], env=env,
+                         capture_output=True, text=True)
+    assert one.returncode == 0, one.stderr[-2000:]
+    torchrun = Path(sys.executable).with_name("torchrun")
+    two = subprocess.run([str(torchrun), "--standalone", "--nproc_per_node", "2", "-m", "nerfbake", *args,
+                          "--out", str(tmp_path / "two")], env=env, capture_output=True, text=True)
+    assert two.returncode == 0, two.stderr[-3000:]
+    assert json.loads((tmp_path / "two" / "config.json").read_text())["world_size"] == 2
+    (a, _, meta), b = load_student(tmp_path / "one"), load_student(tmp_path / "two")[0]
+    torch.testing.assert_close(a.sparse, b.sparse, atol=1e-4, rtol=1e-3)
+    torch.testing.assert_close(a.planes, b.planes, atol=1e-4, rtol=1e-3)
+    # The MLP lattice's gradients sum in another order across ranks, and Adam turns round-off on near-zero
+    # gradients into full-size steps for a few weights, so compare what the MLP produces: the rendered views.
+    from nerfbake.data.formats import load_dataset
+    from nerfbake.smerf.distill import render_student_camera
+    from nerfbake.teacher.train import load_teacher
+
+    teacher = load_teacher(tiny_teacher)[0]
+    cam = load_dataset(meta["data"]).frames[0].camera
+    ia, ib = (render_student_camera(s, teacher, cam, (1.0, 1.0, 1.0)) for s in (a, b))
+    assert np.abs(ia - ib).max() < 2e-3

@@ -256,8 +256,12 @@ def render_dataset(cfg: SynthConfig, out: Path, progress=None) -> Path:
                 done += 1
                 if progress is not None:
                     progress(done, total)
-            (tmp / f"transforms_{split}.json").write_text(
-                json.dumps({"camera_angle_x": math.radians(fov_x), "frames": frames}, indent=1))
+            header = {"camera_angle_x": math.radians(fov_x)}
+            if cfg.scene == "rooms":  # indoors: cameras sit inside the scene, so NeRF's object bounds do not apply
+                lo = np.min([r["min"] for r in meta["rooms"].values()], 0) - 0.05
+                hi = np.max([r["max"] for r in meta["rooms"].values()], 0) + 0.05
+                header.update(near=0.05, far=float(np.linalg.norm(hi - lo)), aabb=[lo.tolist(), hi.tolist()])
+            (tmp / f"transforms_{split}.json").write_text(json.dumps({**header, "frames": frames}, indent=1))
         meta.update({"scene": cfg.scene, "config": cfg.__dict__, "mitsuba_variant": variant,
                      "description": SCENES[cfg.scene]})
         (tmp / "scene_meta.json").write_text(json.dumps(meta, indent=1))

@@ -62,14 +62,18 @@ class GridMLP(nn.Module):
         return idx, w
 
     def weights_at(self, params_idx: torch.Tensor, pos: torch.Tensor) -> list[tuple[torch.Tensor, torch.Tensor]]:
-        """Per ray: the interpolated (kernel (R, in, out), bias (R, out)) of every layer."""
+        """Per row: the interpolated (kernel (R, in, out), bias (R, out)) of every layer, as the trilinear weights
+        spread over all lattice cells (R, N P^3) times the stacked parameters (a matmul, so the backward pass is
+        deterministic, unlike scattering gathered kernels back)."""
         idx, w = self.corners(pos)
-        n = params_idx[:, None].expand(-1, 8)
+        g3 = self.grid ** 3
+        cell = params_idx[:, None] * g3 + (idx[..., 2] * self.grid + idx[..., 1]) * self.grid + idx[..., 0]
+        n = self.kernels[0].shape[0]
+        spread = torch.zeros(pos.shape[0], n * g3, dtype=pos.dtype, device=pos.device).scatter_add_(1, cell, w)
         out = []
         for kern, bias in zip(self.kernels, self.biases):
-            k = kern[n, idx[..., 2], idx[..., 1], idx[..., 0]]  # (R, 8, in, out)
-            b = bias[n, idx[..., 2], idx[..., 1], idx[..., 0]]
-            out.append(((w[..., None, None] * k).sum(1), (w[..., None] * b).sum(1)))
+            k = spread @ kern.reshape(n * g3, -1)
+            out.append((k.view(-1, *kern.shape[-2:]), spread @ bias.reshape(n * g3, -1)))
         return out
 
     def forward(self, x: torch.Tensor, params_idx: torch.Tensor, pos: torch.Tensor) -> torch.Tensor:
@@ -79,9 +83,12 @@ class GridMLP(nn.Module):
         key = torch.cat([params_idx[:, None].to(pos.dtype), pos], 1)
         uniq, inv = torch.unique(key, dim=0, return_inverse=True)
         layers = self.weights_at(uniq[:, 0].long(), uniq[:, 1:])
+        # Rows picked with a one-hot matmul rather than k[inv]: the backward of CPU advanced indexing adds in a
+        # thread-dependent order, which made training runs differ from rerun to rerun.
+        pick = torch.nn.functional.one_hot(inv, len(uniq)).to(x.dtype)
         h = x
         for i, (k, b) in enumerate(layers):
-            h = torch.bmm(h[:, None, :], k[inv])[:, 0] + b[inv]
+            h = torch.bmm(h[:, None, :], (pick @ k.reshape(len(uniq), -1)).view(-1, *k.shape[1:]))[:, 0] + pick @ b
             if i < len(layers) - 1:
                 h = nn.functional.elu(h) if self.activation == "elu" else torch.relu(h)
         return torch.sigmoid(h)

@@ -28,12 +28,14 @@ CONFIG = "config.json"
 
 
 def scene_box(ds: Dataset) -> SceneBox:
-    """The region the teacher models. Blender scenes live in [-1.5, 1.5]^3 between near 2 and far 6; other
+    """The region the teacher models. Blender scenes live in [-1.5, 1.5]^3 between near 2 and far 6 (unless their
+    transforms give ``aabb``/``near``/``far``, as nerfbake's indoor synthetic scenes do); other
     captures are normalised so cameras lie in [-1, 1]^3 and the teacher covers [-1, 1]^3 at full resolution
     with the contraction taking in everything beyond."""
     if ds.format == "blender":
         near, far = ds.bounds or (2.0, 6.0)
-        return SceneBox([-1.5] * 3, [1.5] * 3, near, far)
+        lo, hi = ds.extras.get("aabb", ([-1.5] * 3, [1.5] * 3))
+        return SceneBox(list(lo), list(hi), near, far)
     near = 0.01 if ds.bounds is None else max(0.01, 0.5 * ds.bounds[0])
     return SceneBox([-1.0] * 3, [1.0] * 3, near, 1e10, contracted=True)
 
@@ -64,6 +66,9 @@ def load_teacher(run: Path):
     if not cfg_path.is_file():
         raise FileNotFoundError(f"{cfg_path}: missing; {run} is not a teacher run folder (nerfbake teacher train --out)")
     meta = json.loads(cfg_path.read_text())
+    if "train" not in meta:
+        raise ValueError(f"{cfg_path}: not a teacher run folder (it holds a {meta.get('kind', 'different kind of')} "
+                         "config); pass the --out folder of nerfbake teacher train")
     try:
         cfg = config_from_dict(meta["train"])
         box = SceneBox(**meta["box"])

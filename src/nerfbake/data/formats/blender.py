@@ -8,6 +8,8 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import numpy as np
+
 from nerfbake.data.cameras import Camera
 from nerfbake.data.dataset import WHITE, Dataset, Frame, check_downscale, finish_frames
 from nerfbake.data.errors import DatasetError
@@ -48,4 +50,13 @@ def read_blender(root: Path, downscale: float = 1.0, background=WHITE) -> Datase
         splits[split] = list(range(start, len(frames)))
     norm = Normalization()
     frames = finish_frames(frames, norm, downscale)
-    return Dataset("blender", root, frames, splits, norm, bounds=(2.0, 6.0), background=background, downscale=downscale)
+    bounds, extras = (2.0, 6.0), {}
+    if "near" in meta and "far" in meta:  # optional keys (nerfbake synth's indoor scenes write them)
+        bounds = (number(meta, "near", path), number(meta, "far", path))
+    if "aabb" in meta:
+        box = np.asarray(meta["aabb"], dtype=np.float64)
+        if box.shape != (2, 3) or not np.isfinite(box).all() or (box[1] <= box[0]).any():
+            raise DatasetError(f"{path}: aabb must be [[xmin, ymin, zmin], [xmax, ymax, zmax]] with min < max")
+        extras["aabb"] = box.tolist()
+    return Dataset("blender", root, frames, splits, norm, bounds=bounds, background=background, downscale=downscale,
+                   extras=extras)
