@@ -293,7 +293,7 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
                                              cfg.quantize, cams)
                         cons = charbonnier(alt["rgb"][keep], s_out["rgb"][keep])
                         loss = loss + share * cfg.consistency_mult * cons
-                        terms["consistency"] = float(cons)
+                        terms["consistency"] = float(cons.detach())
                 opt.zero_grad(set_to_none=False)
                 loss.backward()
                 dp.all_reduce_grads(student.parameters())
