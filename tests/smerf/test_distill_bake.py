@@ -12,7 +12,8 @@ import torch
 from nerfbake.cli import main
 from nerfbake.kernels.merf_grid import merf_lookup, merf_lookup_reference
 from nerfbake.smerf.assets import AssetError, SceneAssets, load_submodel
-from nerfbake.smerf.bake import BakeError, bake_student, distance_grid, pack_bits, quantize_channels, atlas_shape
+from nerfbake.smerf.bake import (BakeError, atlas_shape, bake_student, distance_grid, max_pool, pack_bits,
+                                 plane_texels_in_use, quantize_channels)
 from nerfbake.smerf.distill import DistillConfig, distill, load_student
 from nerfbake.smerf.partition import PartitionError
 from nerfbake.smerf.student import StudentConfig
@@ -121,6 +122,18 @@ def tiny_assets_dir(tiny_student, tmp_path_factory):
     return out
 
 
+def median_alive(sm) -> torch.Tensor:
+    """The factor-4 occupancy of a baked submodel, unpacked from the factor-8 bytes (2x2x2 bits per byte)."""
+    occ = torch.from_numpy(sm.occupancy[8].astype(np.int64))
+    n = occ.shape[0]
+    out = torch.zeros(2 * n, 2 * n, 2 * n, dtype=torch.bool)
+    for a in range(2):
+        for b in range(2):
+            for c in range(2):
+                out[a::2, b::2, c::2] = (occ >> (c + 2 * b + 4 * a)) & 1 == 1
+    return out
+
+
 def test_baked_assets_follow_the_format_rules_and_hold_the_students_values(tiny_student, tiny_assets_dir):
     assert asset_problems(tiny_assets_dir) == []
     student = load_student(tiny_student)[0]
@@ -140,8 +153,10 @@ def test_baked_assets_follow_the_format_rules_and_hold_the_students_values(tiny_
         assert np.array_equal(sm.atlas_density[au:au + 9, av:av + 9, aw:aw + 9], want[..., [0, 7]])
         assert np.array_equal(sm.atlas_features[au:au + 9, av:av + 9, aw:aw + 9], want[..., 4:7])
     planes = quantize_channels(student.planes.detach().view(3, t, t, 8))
-    assert np.array_equal(sm.plane_rgb, planes[..., 1:4]) and np.array_equal(sm.plane_features, planes[..., 4:8])
-    assert np.array_equal(sm.plane_density, planes[..., :1])
+    live = plane_texels_in_use(max_pool(median_alive(sm), 1), t)
+    assert 0 < live.sum() < live.size
+    for got, chans in ((sm.plane_rgb, slice(1, 4)), (sm.plane_features, slice(4, 8)), (sm.plane_density, slice(0, 1))):
+        assert np.array_equal(got[live], planes[..., chans][live]) and (got[~live] == 0).all()
     # every alive voxel's occupancy cell is set and lies in an alive block
     assert sm.occupancy[8].any() and (sm.distance[8][sm.occupancy[8] > 0] == 0).all()
 

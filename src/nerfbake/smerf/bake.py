@@ -8,7 +8,8 @@ folder per alive submodel). The steps follow the authors' baker (``shared/refere
 3. max-filter pyramid -> occupancy grids at factors 2..128, bit-packed 2x2x2 per byte, and distance grids;
 4. 8^3 macroblocks of the sparse grid that hold an alive voxel, packed into a 3-D atlas of 9^3 blocks (one-voxel
    apron) with a uint8 block-index grid (255 = empty), each atlas side <= 2048;
-5. uint8 quantisation with the documented ranges; triplanes whole (their texels are the student's own);
+5. uint8 quantisation with the documented ranges; plane texels the viewer can never read (outside every occupied
+   factor-4 column, dilated by one texel) set to byte 0, as the authors' baker does;
 6. ``scene_params.json`` (+ .gz), ``deferred_mlp.json.gz``, ``test_frames.json``, arrays as ``raw.gz`` in reversed
    axis order.
 
@@ -107,6 +108,18 @@ def distance_grid(occupied: torch.Tensor) -> np.ndarray:
         dist[grown & ~cur] = it
         cur = grown
     return dist.to(torch.uint8).numpy()
+
+
+def plane_texels_in_use(occupied4: torch.Tensor, t: int) -> np.ndarray:
+    """(3, T, T) bool: plane texels the viewer can read. It only samples inside occupied factor-4 cells (the
+    bit-packed occupancy it tests), so a texel matters if a column of such cells projects onto it, or onto a
+    bilinear neighbour. Everything else is baked to byte 0, which gzip squeezes away."""
+    masks = []
+    for k in range(3):
+        m = occupied4.any(dim=k).float()[None, None]
+        m = F.interpolate(m, scale_factor=t // occupied4.shape[0], mode="nearest")
+        masks.append(F.max_pool2d(m, 3, stride=1, padding=1)[0, 0] > 0)
+    return torch.stack(masks).numpy()
 
 
 def atlas_shape(num_blocks: int) -> tuple[int, int, int]:
@@ -261,6 +274,7 @@ def write_submodel(folder: Path, student, params_idx: int, alive: torch.Tensor, 
         for k in range(atlas.shape[2]):
             w.write(f"sparse_grid_{kind}_{k:03d}.raw.gz", atlas[:, :, k][..., chans].transpose(1, 0, 2), k, atlas.shape[2])
     planes = quantize_channels(student.planes.detach().cpu().view(-1, 3, t, t, 8)[params_idx])
+    planes[~plane_texels_in_use(levels[4], t)] = 0  # dead texels -> the range minimum, as the authors' baker
     for k in range(3):
         w.plane(f"plane_rgb_{k}.raw.gz", planes[k][..., 1:4])
         w.plane(f"plane_density_{k}.raw.gz", planes[k][..., :1])
