@@ -33,8 +33,8 @@ from nerfbake.eval.metrics import patch_dssim
 from nerfbake.progress import console, progress_bar
 from nerfbake.smerf.partition import Partition, PartitionError
 from nerfbake.smerf.student import Student, StudentConfig
-from nerfbake.train.loop import (DataParallel, Interrupt, RateMeter, git_revision, load_checkpoint, log_linear_lr,
-                                 save_checkpoint, step_generator, tensorboard_writer, to_jsonable, write_json_atomic)
+from nerfbake.train.loop import (RunLog, DataParallel, Interrupt, RateMeter, git_revision, load_checkpoint, log_linear_lr,
+                                 save_checkpoint, step_generator, to_jsonable, write_json_atomic)
 
 CHECKPOINT = "student.pt"
 CONFIG = "config.json"
@@ -241,8 +241,7 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
     t_start = time.time()
     with Interrupt() as interrupt, progress_bar(f"distill K={cfg.k}", cfg.steps, unit="step") as advance:
         advance(start)
-        log = open(out / "metrics.jsonl", "a") if dp.is_main else None
-        tb = tensorboard_writer(out) if dp.is_main and cfg.tensorboard else None
+        runlog = RunLog(out, dp.is_main, cfg.tensorboard)
         try:
             while step < cfg.steps:
                 if interrupt.requested or (stop_at is not None and step >= stop_at):
@@ -306,28 +305,18 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
                 if dp.is_main and (step % 25 == 0 or step == cfg.steps):
                     rec = {"step": step, "loss": float(loss.detach()), "psnr_vs_teacher": psnr, "lr_grid": lr_g,
                            "rays_per_s": rays_s, "cull_alpha": cfg.cull_threshold(step), **terms, "time": time.time()}
-                    log.write(json.dumps(rec) + "\n")
-                    log.flush()
-                    if tb is not None:
-                        for k, v in rec.items():
-                            if k not in ("step", "time"):
-                                tb.add_scalar(f"train/{k}", v, step)
+                    runlog.train(rec)
                     if step % 250 == 0:
                         console.print(f"step {step:6d}  loss {rec['loss']:.5f}  psnr(teacher) {psnr:5.2f}  {rays_s:7.0f} rays/s",
                                       highlight=False)
                 if dp.is_main and cfg.val_every and step % cfg.val_every == 0:
                     vpsnr = validate(student, teacher, ds, val_index, out / "val", step, bg)
-                    log.write(json.dumps({"step": step, "val_psnr": vpsnr}) + "\n")
-                    if tb is not None:
-                        tb.add_scalar("val/psnr", vpsnr, step)
+                    runlog.validation(step, vpsnr)
                     console.print(f"step {step:6d}  validation PSNR {vpsnr:.2f} dB -> {out / 'val'}")
                 if dp.is_main and step % cfg.checkpoint_every == 0 and step < cfg.steps:
                     save_checkpoint(ckpt, state_dict(step))
         finally:
-            if log is not None:
-                log.close()
-            if tb is not None:
-                tb.close()
+            runlog.close()
     if dp.is_main:
         save_checkpoint(ckpt, state_dict(step))
         meta["complete"] = step >= cfg.steps

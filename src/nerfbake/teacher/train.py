@@ -16,8 +16,8 @@ from nerfbake.data.pixels import PixelStore
 from nerfbake.progress import console, progress_bar
 from nerfbake.teacher.models import HashTeacherConfig, NeRFSHTeacherConfig, SceneBox, build_teacher
 from nerfbake.teacher.presets import TeacherTrainConfig
-from nerfbake.train.loop import (DataParallel, Interrupt, default_device, RateMeter, git_revision, load_checkpoint, log_linear_lr,
-                                 save_checkpoint, step_decay_lr, step_generator, tensorboard_writer, to_jsonable,
+from nerfbake.train.loop import (RunLog, DataParallel, Interrupt, default_device, RateMeter, git_revision, load_checkpoint, log_linear_lr,
+                                 save_checkpoint, step_decay_lr, step_generator, to_jsonable,
                                  write_json_atomic)
 from nerfbake.fields.hash_sh import HashSHConfig
 from nerfbake.fields.nerf_sh import NeRFSHConfig
@@ -184,8 +184,7 @@ def train_teacher(data: str | Path, out: str | Path, cfg: TeacherTrainConfig, re
     step = start
     with Interrupt() as interrupt, progress_bar(f"teacher {cfg.field}", cfg.steps, unit="step") as advance:
         advance(start)
-        log = open(out / "metrics.jsonl", "a") if dp.is_main else None
-        tb = tensorboard_writer(out) if dp.is_main and cfg.tensorboard else None
+        runlog = RunLog(out, dp.is_main, cfg.tensorboard)
         try:
             while step < cfg.steps:
                 if interrupt.requested or (stop_at is not None and step >= stop_at):
@@ -215,27 +214,17 @@ def train_teacher(data: str | Path, out: str | Path, cfg: TeacherTrainConfig, re
                            "samples_per_ray": render["num_samples"] / max(1, batch["target"].shape[0]), "time": time.time()}
                     if hasattr(model, "grid"):
                         rec["occupancy"] = model.grid.occupancy_fraction
-                    log.write(json.dumps(rec) + "\n")
-                    log.flush()
-                    if tb is not None:
-                        for k, v in rec.items():
-                            if k not in ("step", "time"):
-                                tb.add_scalar(f"train/{k}", v, step)
+                    runlog.train(rec)
                     console.print(f"step {step:6d}  loss {float(loss.detach()):.5f}  psnr {psnr:5.2f}  {rays_s:8.0f} rays/s  "
                                   f"{rec['samples_per_ray']:.1f} samples/ray", highlight=False) if step % 250 == 0 else None
                 if dp.is_main and cfg.val_every and step % cfg.val_every == 0:
                     vpsnr = validate(step)
-                    log.write(json.dumps({"step": step, "val_psnr": vpsnr, "val_view": val_frame.name}) + "\n")
-                    if tb is not None:
-                        tb.add_scalar("val/psnr", vpsnr, step)
+                    runlog.validation(step, vpsnr, val_view=val_frame.name)
                     console.print(f"step {step:6d}  validation PSNR {vpsnr:.2f} dB ({val_frame.name}) -> {out / 'val'}")
                 if dp.is_main and step % cfg.checkpoint_every == 0 and step < cfg.steps:
                     save_checkpoint(ckpt_path, state_dict(step))
         finally:
-            if log is not None:
-                log.close()
-            if tb is not None:
-                tb.close()
+            runlog.close()
     if dp.is_main:
         save_checkpoint(ckpt_path, state_dict(step))
         meta["complete"] = step >= cfg.steps

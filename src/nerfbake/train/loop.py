@@ -198,3 +198,35 @@ def tensorboard_writer(run: Path):
     except ImportError as exc:
         raise ValueError(f"--tensorboard needs the tensorboard package ({exc}); pip install tensorboard") from None
     return SummaryWriter(str(Path(run) / "tensorboard"))
+
+
+class RunLog:
+    """A run's ``metrics.jsonl`` and, optionally, TensorBoard scalars (``train/*``, ``val/psnr``). Only the main
+    rank of a data-parallel run writes; the others get a no-op log."""
+
+    def __init__(self, run: Path, enabled: bool = True, tensorboard: bool = False):
+        self.file = open(Path(run) / "metrics.jsonl", "a") if enabled else None
+        self.tb = tensorboard_writer(run) if enabled and tensorboard else None
+
+    def train(self, rec: dict) -> None:
+        if self.file is None:
+            return
+        self.file.write(json.dumps(rec) + "\n")
+        self.file.flush()
+        if self.tb is not None:
+            for k, v in rec.items():
+                if k not in ("step", "time"):
+                    self.tb.add_scalar(f"train/{k}", v, rec["step"])
+
+    def validation(self, step: int, psnr: float, **extra) -> None:
+        if self.file is None:
+            return
+        self.file.write(json.dumps({"step": step, "val_psnr": psnr, **extra}) + "\n")
+        if self.tb is not None:
+            self.tb.add_scalar("val/psnr", psnr, step)
+
+    def close(self) -> None:
+        if self.file is not None:
+            self.file.close()
+        if self.tb is not None:
+            self.tb.close()
