@@ -33,7 +33,7 @@ from nerfbake.eval.metrics import patch_dssim
 from nerfbake.progress import console, progress_bar
 from nerfbake.smerf.partition import Partition, PartitionError
 from nerfbake.smerf.student import Student, StudentConfig
-from nerfbake.train.loop import (RunLog, DataParallel, Interrupt, RateMeter, git_revision, load_checkpoint, log_linear_lr,
+from nerfbake.train.loop import (RunLog, finish_run, DataParallel, Interrupt, RateMeter, git_revision, load_checkpoint, log_linear_lr,
                                  save_checkpoint, step_generator, to_jsonable, write_json_atomic)
 
 CHECKPOINT = "student.pt"
@@ -317,15 +317,8 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
                     save_checkpoint(ckpt, state_dict(step))
         finally:
             runlog.close()
-    if dp.is_main:
-        save_checkpoint(ckpt, state_dict(step))
-        meta["complete"] = step >= cfg.steps
-        meta["steps_done"] = step
-        meta["seconds"] = meta.get("seconds", 0.0) + (time.time() - t_start)
-        write_json_atomic(out / CONFIG, meta)
-    dp.barrier()
-    if step < cfg.steps:
-        console.print(f"stopped at step {step}; checkpoint saved — continue with --resume")
+    meta["seconds"] = meta.get("seconds", 0.0) + (time.time() - t_start)
+    finish_run(dp, ckpt, state_dict, out / CONFIG, meta, step, cfg.steps)
     return out
 
 

@@ -16,7 +16,7 @@ from nerfbake.data.pixels import PixelStore
 from nerfbake.progress import console, progress_bar
 from nerfbake.teacher.models import HashTeacherConfig, NeRFSHTeacherConfig, SceneBox, build_teacher
 from nerfbake.teacher.presets import TeacherTrainConfig
-from nerfbake.train.loop import (RunLog, DataParallel, Interrupt, default_device, RateMeter, git_revision, load_checkpoint, log_linear_lr,
+from nerfbake.train.loop import (RunLog, finish_run, DataParallel, Interrupt, default_device, RateMeter, git_revision, load_checkpoint, log_linear_lr,
                                  save_checkpoint, step_decay_lr, step_generator, to_jsonable,
                                  write_json_atomic)
 from nerfbake.fields.hash_sh import HashSHConfig
@@ -225,12 +225,5 @@ def train_teacher(data: str | Path, out: str | Path, cfg: TeacherTrainConfig, re
                     save_checkpoint(ckpt_path, state_dict(step))
         finally:
             runlog.close()
-    if dp.is_main:
-        save_checkpoint(ckpt_path, state_dict(step))
-        meta["complete"] = step >= cfg.steps
-        meta["steps_done"] = step
-        write_json_atomic(out / CONFIG, meta)
-    dp.barrier()
-    if step < cfg.steps:
-        console.print(f"stopped at step {step}; checkpoint saved — continue with --resume")
+    finish_run(dp, ckpt_path, state_dict, out / CONFIG, meta, step, cfg.steps)
     return out

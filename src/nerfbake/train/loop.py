@@ -20,6 +20,8 @@ from pathlib import Path
 import torch
 import torch.distributed as dist
 
+from nerfbake.progress import console
+
 
 def step_generator(seed: int, step: int) -> torch.Generator:
     return torch.Generator().manual_seed((seed * 1_000_003 + step) % (2**63 - 1))
@@ -230,3 +232,16 @@ class RunLog:
             self.file.close()
         if self.tb is not None:
             self.tb.close()
+
+
+def finish_run(dp: "DataParallel", ckpt_path: Path, state_fn, config_path: Path, meta: dict, step: int, total: int) -> None:
+    """End of a (possibly interrupted) run: the main rank saves the last checkpoint and records in the config
+    whether the run is complete; every rank waits; an unfinished run says how to continue."""
+    if dp.is_main:
+        save_checkpoint(ckpt_path, state_fn(step))
+        meta["complete"] = step >= total
+        meta["steps_done"] = step
+        write_json_atomic(config_path, meta)
+    dp.barrier()
+    if step < total:
+        console.print(f"stopped at step {step}; checkpoint saved — continue with --resume")
