@@ -63,3 +63,20 @@ def evaluate_views(render: Callable, ds: Dataset, split: str = "test", max_views
                      "views": "every view of the split" if not max_views else f"{len(per_image)} evenly spaced views"},
     })
     return result
+
+
+def validation_image(render: Callable, ds: Dataset, index: int, out_dir: Path, step: int, max_width: int = 200) -> float:
+    """Render one held-out view (at most ``max_width`` px wide) with ``render(camera) -> (H, W, 3)``, write it next
+    to its ground truth as ``out_dir/step_NNNNNNN.png`` and return its PSNR (the trainers' periodic check)."""
+    from nerfbake.data.images import area_downscale
+
+    camera = ds.frames[index].camera
+    factor = max(1.0, camera.width / max_width)
+    cam = camera.scaled(factor)
+    pred = np.clip(render(cam), 0, 1)
+    gt = ds.image(index)
+    if factor > 1:
+        gt = area_downscale(np.round(gt * 255).astype(np.uint8), (cam.width, cam.height)).astype(np.float32) / 255
+    out_dir.mkdir(parents=True, exist_ok=True)
+    iio.imwrite(out_dir / f"step_{step:07d}.png", to_png(np.concatenate([pred, gt], axis=1)))
+    return float(-10 * np.log10(max(np.mean((pred - gt) ** 2), 1e-10)))

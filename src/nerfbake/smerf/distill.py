@@ -345,22 +345,12 @@ def render_student_camera(student: Student, teacher, camera, background, chunk: 
 
 
 def validate(student, teacher, ds, index: int, out_dir: Path, step: int, background) -> float:
-    """Render one held-out view at <= 200 px wide next to its ground truth; returns PSNR."""
-    import imageio.v3 as iio
+    """One held-out view next to its ground truth in ``out_dir``; returns PSNR (NaN when the view's camera lies
+    outside the partition cube)."""
+    from nerfbake.eval.views import validation_image
 
-    from nerfbake.data.images import area_downscale
-    from nerfbake.eval.views import to_png
-
-    camera = ds.frames[index].camera
-    factor = max(1.0, camera.width / 200)
-    cam = camera.scaled(factor)
     try:
-        pred = render_student_camera(student, teacher, cam, background)
+        return validation_image(lambda cam: render_student_camera(student, teacher, cam, background), ds, index,
+                                out_dir, step)
     except PartitionError:
         return float("nan")
-    gt = ds.image(index)
-    if factor > 1:
-        gt = area_downscale(np.round(gt * 255).astype(np.uint8), (cam.width, cam.height)).astype(np.float32) / 255
-    out_dir.mkdir(parents=True, exist_ok=True)
-    iio.imwrite(out_dir / f"step_{step:07d}.png", to_png(np.concatenate([pred, gt], axis=1)))
-    return float(-10 * np.log10(max(np.mean((pred - gt) ** 2), 1e-10)))

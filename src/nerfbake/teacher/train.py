@@ -119,26 +119,19 @@ def loss_terms(model, batch: dict, total_rays: int, gen: torch.Generator, world:
 
 
 def render_validation(model, ds: Dataset, index: int, out_dir: Path, step: int) -> float:
-    """Render one held-out view (at most 200 px wide) next to its ground truth into ``out_dir``; returns PSNR."""
-    import imageio.v3 as iio
-
-    from nerfbake.data.images import area_downscale
-    from nerfbake.eval.views import to_png
+    """One held-out view next to its ground truth in ``out_dir``, rendered in eval mode; returns PSNR."""
+    from nerfbake.eval.views import validation_image
     from nerfbake.teacher.evaluate import render_camera
 
-    camera = ds.frames[index].camera
-    factor = max(1.0, camera.width / 200)
-    cam = camera.scaled(factor)
-    was_training = model.training
-    model.eval()
-    pred = render_camera(model, cam, ds.background or (1.0, 1.0, 1.0))["rgb"]
-    model.train(was_training)
-    gt = ds.image(index)
-    if factor > 1:
-        gt = area_downscale(np.round(gt * 255).astype(np.uint8), (cam.width, cam.height)).astype(np.float32) / 255
-    out_dir.mkdir(parents=True, exist_ok=True)
-    iio.imwrite(out_dir / f"step_{step:07d}.png", to_png(np.concatenate([pred, gt], axis=1)))
-    return float(-10 * np.log10(max(np.mean((np.clip(pred, 0, 1) - gt) ** 2), 1e-10)))
+    def render(cam):
+        was_training = model.training
+        model.eval()
+        try:
+            return render_camera(model, cam, ds.background or (1.0, 1.0, 1.0))["rgb"]
+        finally:
+            model.train(was_training)
+
+    return validation_image(render, ds, index, out_dir, step)
 
 
 def train_teacher(data: str | Path, out: str | Path, cfg: TeacherTrainConfig, resume: bool = False,
