@@ -21,16 +21,23 @@ from nerfbake.teacher.models import build_teacher
 from nerfbake.teacher.presets import preset
 from nerfbake.teacher.train import draw_batch, loss_terms, make_optimizer, scene_box
 from nerfbake.train.loop import DataParallel
-from nerfbake.train.loop import git_revision, step_generator
+from nerfbake.train.loop import default_device, git_revision, step_generator
+
+
+def sync() -> None:
+    if torch.cuda.is_available():
+        torch.cuda.synchronize()
 
 
 def time_training(kind: str, ds, store, warmup: int, steps: int) -> dict:
     cfg = preset(kind, "cpu-small")
-    model = build_teacher(kind, cfg.model_config, scene_box(ds))
+    device = default_device()
+    model = build_teacher(kind, cfg.model_config, scene_box(ds)).to(device)
     opt = make_optimizer(model, cfg)
     samples = 0
     for step in range(warmup + steps):
         if step == warmup:
+            sync()
             t = time.perf_counter()
             samples = 0
         gen = step_generator(0, step)
@@ -41,13 +48,17 @@ def time_training(kind: str, ds, store, warmup: int, steps: int) -> dict:
         loss.backward()
         opt.step()
         samples += out["num_samples"]
+    sync()
     dt = time.perf_counter() - t
     model.eval()
-    render_batch = store.sample_uniform_rays(8192, step_generator(1, 0))
+    render_batch = {k: v.to(device) for k, v in store.sample_uniform_rays(8192, step_generator(1, 0)).items()}
+    white = torch.ones(3, device=device)
     with torch.no_grad():
-        model.render_rays(render_batch["origins"][:1024], render_batch["directions"][:1024], torch.ones(3))
+        model.render_rays(render_batch["origins"][:1024], render_batch["directions"][:1024], white)
+        sync()
         t = time.perf_counter()
-        model.render_rays(render_batch["origins"], render_batch["directions"], torch.ones(3))
+        model.render_rays(render_batch["origins"], render_batch["directions"], white)
+        sync()
         rdt = time.perf_counter() - t
     return {"train_rays_per_s": cfg.batch_rays * steps / dt, "train_samples_per_ray": samples / (cfg.batch_rays * steps),
             "train_ms_per_step": 1000 * dt / steps, "batch_rays": cfg.batch_rays, "render_rays_per_s": 8192 / rdt,
@@ -59,12 +70,15 @@ def time_hash_kernel() -> dict:
     dense = ((res.long() + 1) ** 3 <= 2**19).int()
     table = torch.randn(16, 2**19, 2) * 1e-2
     x = torch.rand(100_000, 3, generator=torch.Generator().manual_seed(0))
+    device = default_device()
+    res, dense, table, x = (v.to(device) for v in (res, dense, table, x))
 
     def best(fn, reps=3):
         out = []
         for _ in range(reps):
             t = time.perf_counter()
             fn()
+            sync()
             out.append(time.perf_counter() - t)
         return min(out)
 

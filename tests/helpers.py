@@ -1,4 +1,7 @@
 """Small configurations shared by several test modules."""
+import pytest
+import torch
+
 from nerfbake.fields.hash_sh import HashSHConfig
 from nerfbake.fields.nerf_sh import NeRFSHConfig
 from nerfbake.teacher.models import HashTeacherConfig, NeRFSHTeacherConfig
@@ -16,3 +19,8 @@ def tiny_config(field="hash", steps=6):
     )
 
 
+
+
+# Kernel tests run on the CPU everywhere and also on CUDA where a GPU is present (the same kernels, built for it).
+DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
+devices = pytest.mark.parametrize("device", DEVICES)

@@ -5,6 +5,7 @@ from nerfbake.kernels.hashgrid import hash_encode, hash_encode_reference
 from nerfbake.kernels.march import march_rays
 from nerfbake.render.packed import packed_composite, packed_weights
 from nerfbake.render.quadrature import composite, weights_from_density
+from tests.helpers import devices
 
 
 def grid_setup(levels=6, log2_table=10):
@@ -14,23 +15,26 @@ def grid_setup(levels=6, log2_table=10):
     return res, dense, table
 
 
-def test_hash_encoding_matches_reference_and_has_both_kinds_of_level():
+@devices
+def test_hash_encoding_matches_reference_and_has_both_kinds_of_level(device):
     res, dense, table = grid_setup()
     assert dense.any() and not dense.all()
     x = torch.rand(3000, 3, generator=torch.Generator().manual_seed(1))
     x[:10] = torch.tensor([0.0, 1.0, 0.999999])  # the box's faces
-    torch.testing.assert_close(hash_encode(x, table, res, dense), hash_encode_reference(x, table, res, dense))
+    kernel = hash_encode(x.to(device), table.to(device), res.to(device), dense.to(device)).cpu()
+    torch.testing.assert_close(kernel, hash_encode_reference(x, table, res, dense))
 
 
-def test_hash_encoding_gradient_matches_reference():
+@devices
+def test_hash_encoding_gradient_matches_reference(device):
     res, dense, table = grid_setup()
     x = torch.rand(2000, 3, generator=torch.Generator().manual_seed(2))
     g = torch.randn(2000, 12, generator=torch.Generator().manual_seed(3))
-    t1 = table.clone().requires_grad_()
+    t1 = table.clone().to(device).requires_grad_()
     t2 = table.clone().requires_grad_()
-    (hash_encode(x, t1, res, dense) * g).sum().backward()
+    (hash_encode(x.to(device), t1, res.to(device), dense.to(device)) * g.to(device)).sum().backward()
     (hash_encode_reference(x, t2, res, dense) * g).sum().backward()
-    torch.testing.assert_close(t1.grad, t2.grad, atol=1e-5, rtol=1e-5)
+    torch.testing.assert_close(t1.grad.cpu(), t2.grad, atol=1e-5, rtol=1e-5)
 
 
 def test_hash_encoding_gradient_by_finite_differences():
@@ -50,7 +54,8 @@ def test_hash_encoding_gradient_by_finite_differences():
         assert abs(float(fd) - float(t.grad[lvl, row, f])) < 1e-3
 
 
-def test_marching_matches_a_dense_reference():
+@devices
+def test_marching_matches_a_dense_reference(device):
     g = torch.Generator().manual_seed(5)
     grid = torch.rand(16, 16, 16, generator=g) > 0.7
     box_min, box_max = torch.tensor([-1.0, -1, -1]), torch.tensor([1.0, 1, 1])
@@ -60,7 +65,8 @@ def test_marching_matches_a_dense_reference():
     t_near, t_far = torch.full((n,), 1.0), torch.full((n,), 5.0)
     dt = 0.05
     offset = torch.rand(n, generator=g)
-    ray_idx, t0, t1 = march_rays(origins, dirs, t_near, t_far, grid, box_min, box_max, dt, offset)
+    on = [v.to(device) for v in (origins, dirs, t_near, t_far, grid, box_min, box_max)]
+    ray_idx, t0, t1 = (v.cpu() for v in march_rays(*on, dt, offset.to(device)))
     # Reference: every step's midpoint, kept when its cell is occupied.
     steps = torch.arange(0, 200).float()
     t = t_near[:, None] + offset[:, None] * dt + steps * dt

@@ -17,6 +17,7 @@ from nerfbake.octree.optimize import OptimizeConfig, optimize_tree
 from nerfbake.octree.render import RenderOptions, render_reference, render_rays
 from nerfbake.octree.tree import Octree, tree_from_cells
 from tests.conftest import shared_data
+from tests.helpers import devices
 
 
 @pytest.fixture(scope="module")
@@ -146,23 +147,27 @@ def test_bad_files_give_clear_errors(fixtures, tmp_path):
     RenderOptions(), RenderOptions.training(), RenderOptions(basis_min=1, basis_max=9, background=(0.2, 0.5, 0.0)),
     RenderOptions(bbox_min=(0.3, 0.0, 0.2), bbox_max=(0.8, 0.7, 1.0), step_size=1e-3),
 ], ids=["volrend-defaults", "training", "sh-range", "slicing"])
-def test_kernel_matches_torch_reference(opts):
+@devices
+def test_kernel_matches_torch_reference(opts, device):
     tree = random_tree(76)  # SH25: every basis function the kernel has
     o, d = random_rays(3000)
-    a, b = render_rays(tree, o, d, opts), render_reference(tree, o, d, opts)
+    a = {k: v.cpu() for k, v in render_rays(tree.to(device), o.to(device), d.to(device), opts).items()}
+    b = render_reference(tree, o, d, opts)
     assert (a["rgb"] - b["rgb"]).abs().max() < 1e-4
     assert (a["alpha"] - b["alpha"]).abs().max() < 1e-4
     assert ((a["depth"] - b["depth"]).abs() / b["depth"].clamp_min(1)).max() < 1e-4
     assert 0.05 < float(b["alpha"].mean()) < 0.95  # the rays see the tree, and not all of it is opaque
 
 
-def test_backward_matches_autograd_and_finite_differences():
+@devices
+def test_backward_matches_autograd_and_finite_differences(device):
     tree = random_tree(28, seed=1)
     o, d = random_rays(2000, seed=1)
     opts = RenderOptions.training(background=(0.3, 0.6, 0.9))
     g = torch.randn(o.shape[0], 3, generator=torch.Generator().manual_seed(2))
-    rgb = render_rays(tree, o, d, opts)["rgb"]
-    kernel = render_backward(tree, o, d, opts, rgb, g).reshape(-1, 28)
+    on = tree.to(device), o.to(device), d.to(device)
+    rgb = render_rays(*on, opts)["rgb"]
+    kernel = render_backward(*on, opts, rgb, g.to(device)).reshape(-1, 28).cpu()
     data64 = tree.data.double().requires_grad_()
     t64 = Octree(tree.child, data64, tree.offset, tree.invradius, tree.depth_limit)
     (render_reference(t64, o.double(), d.double(), opts)["rgb"] * g.double()).sum().backward()

@@ -12,6 +12,7 @@ from nerfbake.cli import main
 from nerfbake.smerf.assets import AssetError, SceneAssets, load_submodel
 from nerfbake.smerf.baked_render import ViewerCamera, read_test_frames, render_baked, submodel_for_position
 from tests.conftest import shared_data
+from tests.helpers import devices
 
 
 @pytest.fixture(scope="module")
@@ -39,12 +40,13 @@ def test_reads_the_official_layout(tiny_assets):
     assert (sm.distance[8][sm.occupancy[8] > 0] == 0).all() and (sm.occupancy[8] > 0).any()
 
 
-def test_baked_renderer_matches_the_official_viewer(tiny_assets, tmp_path):
+@devices
+def test_baked_renderer_matches_the_official_viewer(tiny_assets, tmp_path, device):
     official = iio.imread(tiny_assets / "official_viewer_render.png")[..., :3]
     h, w = official.shape[:2]
     scene = SceneAssets.open(tiny_assets)
     cam = ViewerCamera.perspective([0, 0, 0], np.diag([-1.0, 1.0, -1.0]), 40.0, w, h)
-    ours = np.round(render_baked(scene, cam) * 255).astype(np.uint8)
+    ours = np.round(render_baked(scene, cam, device=device) * 255).astype(np.uint8)
     iio.imwrite(tmp_path / "ours.png", ours)
     # The official picture was accumulated progressively at half resolution (downscale 2) and is 12-24 % darker
     # with a top-to-bottom gradient, so geometry and hue are compared, not absolute brightness.

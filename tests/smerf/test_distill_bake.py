@@ -18,6 +18,7 @@ from nerfbake.smerf.distill import DistillConfig, distill, load_student
 from nerfbake.smerf.partition import PartitionError
 from nerfbake.smerf.student import StudentConfig
 from nerfbake.smerf.validate import asset_problems
+from tests.helpers import devices
 
 
 # --- the lookup kernel --------------------------------------------------------------------------------------------
@@ -31,16 +32,18 @@ def _grids(s=8, t=16, n=2, seed=0):
     return sparse, planes, z, sm
 
 
+@devices
 @pytest.mark.parametrize("quantize", [False, True])
-def test_lookup_kernel_matches_reference_values_and_gradients(quantize):
+def test_lookup_kernel_matches_reference_values_and_gradients(quantize, device):
     sparse, planes, z, sm = _grids()
-    a, b = merf_lookup(z, sm, sparse, planes, 8, 16, quantize)
+    on = [torch.nn.Parameter(p.detach().to(device)) for p in (sparse, planes)]
+    a, b = (v.cpu() for v in merf_lookup(z.to(device), sm.to(device), *on, 8, 16, quantize))
     c, d = merf_lookup_reference(z, sm, sparse, planes, 8, 16, quantize)
     assert torch.allclose(a, c, atol=1e-5) and torch.allclose(b, d, atol=1e-5)
     ga, gb = torch.randn_like(a), torch.randn_like(b)
-    (a * ga + b * gb).sum().backward()
-    mine = sparse.grad.clone(), planes.grad.clone()
-    sparse.grad = planes.grad = None
+    a, b = merf_lookup(z.to(device), sm.to(device), *on, 8, 16, quantize)
+    (a * ga.to(device) + b * gb.to(device)).sum().backward()
+    mine = on[0].grad.cpu(), on[1].grad.cpu()
     (c * ga + d * gb).sum().backward()
     assert torch.allclose(mine[0], sparse.grad, atol=1e-5) and torch.allclose(mine[1], planes.grad, atol=1e-5)
 

@@ -172,9 +172,9 @@ def hash_encode_reference(x, table, resolution, dense) -> torch.Tensor:
         p = x * res
         i = p.floor().long().clamp(max=res - 1)
         frac = p - i
-        acc = torch.zeros(x.shape[0], nf, dtype=table.dtype)
+        acc = torch.zeros(x.shape[0], nf, dtype=table.dtype, device=x.device)
         for c in range(8):
-            d = torch.tensor([c & 1, (c >> 1) & 1, (c >> 2) & 1])
+            d = torch.tensor([c & 1, (c >> 1) & 1, (c >> 2) & 1], device=x.device)
             corner = i + d
             w = torch.where(d == 1, frac, 1 - frac).prod(-1)
             if int(dense[level]):
