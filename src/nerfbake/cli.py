@@ -547,6 +547,17 @@ def build_parser() -> argparse.ArgumentParser:
     bk.add_argument("--overwrite", action="store_true")
     bk.set_defaults(func=cmd_bake)
 
+    vw = sub.add_parser("view", help="serve the web viewer for a baked SMERF folder or a PlenOctree .npz")
+    vw.add_argument("scene", help="asset folder (holding sm_XXX/) or tree .npz")
+    vw.add_argument("--port", type=int, default=8000)
+    vw.add_argument("--host", default="127.0.0.1", help="0.0.0.0 exposes the viewer to other devices on the network")
+    vw.add_argument("--benchmark", action="store_true", help="measure ms/frame at 512x512 and 1280x720 in headless chromium")
+    vw.add_argument("--frame-mult", type=int, default=1, help="draws per animation frame while benchmarking")
+    vw.add_argument("--frames", type=int, default=6, help="timed animation frames per view (after 2 warm-up frames)")
+    vw.add_argument("--gpu", action="store_true", help="benchmark on the machine's GPU instead of SwiftShader")
+    vw.add_argument("--json", action="store_true")
+    vw.set_defaults(func=cmd_view)
+
     demo = sub.add_parser("demo", help="run the pipeline on the built-in synthetic scene (CPU preset)")
     demo.add_argument("--out", default="outputs/demo")
     demo.add_argument("--width", type=int, default=160)
@@ -557,6 +568,32 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--octree-grid", type=int, default=128, help="PlenOctree dense grid side (0 skips the octree stages)")
     demo.set_defaults(func=cmd_demo)
     return parser
+
+
+def cmd_view(args) -> int:
+    from nerfbake.viewer.server import ViewerServer, find_scene
+
+    scene = find_scene(args.scene)
+    if args.benchmark:
+        from nerfbake.viewer.browser import run_benchmark
+
+        result = run_benchmark(scene, frame_mult=args.frame_mult, frames_per_view=args.frames,
+                               software_gl=not args.gpu)
+        if args.json:
+            _print_json(result)
+        else:
+            for r in result["sizes"]:
+                print(f"{r['width']}x{r['height']}: {r['mean_ms_per_frame']:.2f} ms/frame ({r['fps']:.1f} fps) on {r['renderer']}")
+        return 0
+    server = ViewerServer(scene, host=args.host, port=args.port)
+    print(f"serving {scene.kind} scene {scene.name} at {server.url}  (Ctrl-C stops)", flush=True)
+    if args.host not in ("127.0.0.1", "localhost"):
+        print(f"reachable from other devices on this network at http://<this machine's address>:{server.port}/", flush=True)
+    try:
+        server.httpd.serve_forever()
+    finally:
+        server.httpd.server_close()
+    return 0
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -1,0 +1,116 @@
+"""Driving the viewer in a real headless browser (Playwright + Debian's chromium; SwiftShader where there is no GPU):
+the benchmark command and the tests both go through :class:`ViewerPage`."""
+from __future__ import annotations
+
+import base64
+import contextlib
+import os
+import shutil
+import tempfile
+from pathlib import Path
+
+import numpy as np
+
+from nerfbake.viewer.server import ViewerServer
+
+CHROMIUM_FLAGS = [
+    "--no-sandbox", "--disable-background-networking", "--disable-component-update", "--disable-sync",
+    "--no-first-run", "--disable-quic", "--ignore-gpu-blocklist",
+]
+SOFTWARE_GL_FLAGS = ["--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
+
+
+def chromium_path() -> str:
+    exe = os.environ.get("NERFBAKE_CHROMIUM") or shutil.which("chromium") or shutil.which("chromium-browser")
+    if not exe:
+        raise FileNotFoundError("no chromium found: install Debian's chromium (apt-get install chromium) or set "
+                                "NERFBAKE_CHROMIUM to a Chrome/Chromium binary")
+    return exe
+
+
+class ViewerPage:
+    """The viewer open on one scene in headless chromium; console errors are collected in ``errors``."""
+
+    def __init__(self, scene, query: str = "", size=(320, 240), software_gl: bool = True, timeout_s: float = 300):
+        self.scene, self.query, self.size, self.software_gl, self.timeout_ms = scene, query, size, software_gl, timeout_s * 1000
+        self.errors: list[str] = []
+        self.console: list[str] = []
+
+    def __enter__(self) -> "ViewerPage":
+        from playwright.sync_api import sync_playwright
+
+        self._stack = contextlib.ExitStack()
+        self.server = self._stack.enter_context(ViewerServer(self.scene, port=0))
+        self._pw = self._stack.enter_context(sync_playwright())
+        profile = self._stack.enter_context(tempfile.TemporaryDirectory(prefix="nerfbake-chromium-"))
+        flags = CHROMIUM_FLAGS + (SOFTWARE_GL_FLAGS if self.software_gl else ["--enable-gpu", "--use-angle=default"])
+        context = self._pw.chromium.launch_persistent_context(
+            profile, executable_path=chromium_path(), headless=True, args=flags,
+            viewport={"width": self.size[0], "height": self.size[1]})
+        self._stack.callback(context.close)
+        self.page = context.pages[0] if context.pages else context.new_page()
+        self.page.set_default_timeout(self.timeout_ms)
+        self.page.on("console", self._on_console)
+        self.page.on("pageerror", lambda exc: self.errors.append(f"page error: {exc}"))
+        sep = "&" if self.query else ""
+        self.page.goto(f"{self.server.url}?s={self.size[0]},{self.size[1]}{sep}{self.query}")
+        self.page.wait_for_function("() => window.nerfbake !== undefined")
+        failure = self.page.evaluate("() => window.nerfbake.ready.then(() => null, (e) => String(e && e.message || e))")
+        if failure:
+            self.close()
+            raise RuntimeError(f"the viewer failed to open {self.scene}: {failure}")
+        return self
+
+    def _on_console(self, msg) -> None:
+        self.console.append(f"{msg.type}: {msg.text}")
+        if msg.type == "error":
+            self.errors.append(msg.text)
+
+    def close(self) -> None:
+        self._stack.close()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def evaluate(self, js: str, arg=None):
+        return self.page.evaluate(js, arg)
+
+    def _image(self, b64: str, width: int, height: int) -> np.ndarray:
+        return np.frombuffer(base64.b64decode(b64), np.uint8).reshape(height, width, 4)[..., :3]
+
+    def render_test_view(self, index: int, width: int, height: int) -> np.ndarray:
+        """(H, W, 3) uint8 image of a SMERF ``test_frames.json`` view."""
+        b64 = self.evaluate("([i, w, h]) => window.nerfbake.renderTestView(i, w, h)", [index, width, height])
+        return self._image(b64, width, height)
+
+    def render_camera(self, camera: dict, width: int, height: int) -> np.ndarray:
+        b64 = self.evaluate("([c, w, h]) => window.nerfbake.renderCamera(c, w, h)", [camera, width, height])
+        return self._image(b64, width, height)
+
+    def state(self) -> dict:
+        return self.evaluate("() => window.nerfbake.state()")
+
+    def benchmark(self, width: int, height: int, frame_mult: int = 1, frames_per_view: int = 6, warmup: int = 2) -> dict:
+        return self.evaluate("([w, h, k, n, m]) => window.nerfbake.benchmark(w, h, k, n, m)",
+                             [width, height, frame_mult, frames_per_view, warmup])
+
+
+def octree_camera(cam) -> dict:
+    """A :class:`nerfbake.data.cameras.Camera` as the viewer's octree camera (pinhole, camera-to-world rows)."""
+    return {"position": cam.c2w[:3, 3].tolist(), "rotation": cam.c2w[:3, :3].tolist(),
+            "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy}
+
+
+def run_benchmark(scene: str | Path, sizes=((512, 512), (1280, 720)), frame_mult: int = 1, frames_per_view: int = 6,
+                  software_gl: bool = True) -> dict:
+    """Mean ms/frame per size over the scene's benchmark views, measured in the browser."""
+    out = {"scene": str(scene), "sizes": []}
+    with ViewerPage(scene, size=(256, 256), software_gl=software_gl) as page:
+        for w, h in sizes:
+            out["sizes"].append(page.benchmark(w, h, frame_mult, frames_per_view))
+        out["console_errors"] = page.errors
+    first = out["sizes"][0]
+    out.update(kind=first["kind"], renderer=first["renderer"])
+    for r in out["sizes"]:
+        out[f"ms_per_frame_{r['width']}x{r['height']}"] = r["mean_ms_per_frame"]
+    return out
