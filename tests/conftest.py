@@ -54,3 +54,60 @@ def tiny_teacher(tiny_scene, tmp_path_factory) -> Path:
 
     cfg = replace(tiny_config(steps=150), checkpoint_every=1000, val_every=10_000)
     return train_teacher(tiny_scene, tmp_path_factory.mktemp("teacher") / "run", cfg)
+
+
+@pytest.fixture(scope="session")
+def tiny_tree(tiny_teacher, tmp_path_factory) -> Path:
+    """A PlenOctree (32^3 grid) built from ``tiny_teacher``."""
+    from nerfbake.octree.build import BuildConfig, build_octree
+
+    out = tmp_path_factory.mktemp("tree") / "tree.npz"
+    build_octree(tiny_teacher, out, BuildConfig(grid=32, samples_per_leaf=8, autoscale_grid=16, weight_thresh=0.01))
+    return out
+
+
+@pytest.fixture(scope="session")
+def tiny_student(tiny_teacher, tmp_path_factory) -> Path:
+    from nerfbake.smerf.distill import distill
+    from tests.helpers import tiny_distill_config
+
+    return distill(tiny_teacher, tmp_path_factory.mktemp("student") / "s", tiny_distill_config())
+
+
+@pytest.fixture(scope="session")
+def tiny_assets_dir(tiny_student, tmp_path_factory) -> Path:
+    """``tiny_student`` baked into the official viewer's asset layout."""
+    from nerfbake.smerf.bake import bake_student
+
+    out = tmp_path_factory.mktemp("assets") / "baked"
+    bake_student(tiny_student, out, stride=1)
+    return out
+
+
+@pytest.fixture(scope="session")
+def rooms_teacher(tmp_path_factory) -> Path:
+    """A tiny hash teacher on the two-room synthetic scene (cameras spread over a K = 2 partition)."""
+    from dataclasses import replace
+
+    from nerfbake.data.synth import SynthConfig, render_dataset
+    from nerfbake.teacher.train import train_teacher
+    from tests.helpers import tiny_config
+
+    scene = render_dataset(SynthConfig("rooms", 32, 32, views=12, spp=4, seed=0), tmp_path_factory.mktemp("rooms") / "scene")
+    cfg = replace(tiny_config(steps=80), checkpoint_every=1000, val_every=10_000)
+    return train_teacher(scene, tmp_path_factory.mktemp("rooms_teacher") / "run", cfg)
+
+
+@pytest.fixture(scope="session")
+def rooms_k2(rooms_teacher, tmp_path_factory) -> tuple[Path, Path]:
+    """(student, baked assets) of a K = 2 distillation of ``rooms_teacher``: several alive submodels."""
+    from dataclasses import replace
+
+    from nerfbake.smerf.bake import bake_student
+    from nerfbake.smerf.distill import distill
+    from tests.helpers import tiny_distill_config
+
+    root = tmp_path_factory.mktemp("rooms_k2")
+    student = distill(rooms_teacher, root / "student", replace(tiny_distill_config(steps=20), k=2))
+    bake_student(student, root / "assets")
+    return student, root / "assets"

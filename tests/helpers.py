@@ -4,6 +4,8 @@ import torch
 
 from nerfbake.fields.hash_sh import HashSHConfig
 from nerfbake.fields.nerf_sh import NeRFSHConfig
+from nerfbake.smerf.distill import DistillConfig
+from nerfbake.smerf.student import StudentConfig
 from nerfbake.teacher.models import HashTeacherConfig, NeRFSHTeacherConfig
 from nerfbake.teacher.presets import TeacherTrainConfig
 
@@ -24,3 +26,9 @@ def tiny_config(field="hash", steps=6):
 # Kernel tests run on the CPU everywhere and also on CUDA where a GPU is present (the same kernels, built for it).
 DEVICES = ["cpu"] + (["cuda"] if torch.cuda.is_available() else [])
 devices = pytest.mark.parametrize("device", DEVICES)
+
+
+def tiny_distill_config(steps=60) -> DistillConfig:
+    return DistillConfig(preset="test", steps=steps, batch_patches=64, checkpoint_every=20, val_every=0, warmup_steps=5,
+                         empty_space_points=4096,
+                         student=StudentConfig(sparse_resolution=32, triplane_resolution=128))

@@ -75,6 +75,19 @@ def cmd_synth(args) -> int:
     return 0
 
 
+def cmd_process(args) -> int:
+    """Photos or a video -> a posed dataset (pycolmap SfM on the CPU): COLMAP layout + transforms.json."""
+    from nerfbake.data.process import ProcessConfig, parse_downscales, process, summary_lines
+
+    cfg = ProcessConfig(out=Path(args.out), images=Path(args.images) if args.images else None,
+                        video=Path(args.video) if args.video else None, fps=args.fps, max_images=args.max_images,
+                        camera_model=args.camera_model, matcher=args.matcher, downscales=parse_downscales(args.downscales))
+    report = process(cfg, log=lambda line: print(line, file=sys.stderr))
+    for line in summary_lines(report):
+        print(line)
+    return 0
+
+
 def cmd_demo(args) -> int:
     """Built-in scene -> hash teacher (CPU preset, shortened) -> PlenOctree (build, fine-tune, compress) -> test-view
     metrics of each. Grows into the whole pipeline."""
@@ -414,6 +427,21 @@ def build_parser() -> argparse.ArgumentParser:
     syn.add_argument("--list", action="store_true", help="list the scenes")
     syn.set_defaults(func=cmd_synth)
 
+    pr = sub.add_parser("process", help="your own photos or video -> a posed dataset (structure from motion, CPU)")
+    src = pr.add_mutually_exclusive_group(required=True)
+    src.add_argument("--images", help="folder of photos (EXIF orientation honoured; unreadable files are skipped)")
+    src.add_argument("--video", help="video file: the sharpest frame of each evenly spaced window is kept")
+    pr.add_argument("--out", required=True, help="dataset folder to create (images/, sparse/0/, transforms.json)")
+    pr.add_argument("--fps", type=float, help="video: frames kept per second of video (default: --max-images in all)")
+    pr.add_argument("--max-images", type=int, help="use at most N images, evenly spread (video default 100; folder: all)")
+    pr.add_argument("--camera-model", default="SIMPLE_RADIAL",
+                    choices=["SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV"],
+                    help="COLMAP camera model, one per video or per EXIF camera (default SIMPLE_RADIAL)")
+    pr.add_argument("--matcher", choices=["exhaustive", "sequential"],
+                    help="default: sequential for video, exhaustive for a folder")
+    pr.add_argument("--downscales", default="2,4,8", help="also write images_F/ for these factors ('none' for none)")
+    pr.set_defaults(func=cmd_process)
+
     teacher = sub.add_parser("teacher", help="train, evaluate and render teacher fields").add_subparsers(
         dest="teacher_command", required=True)
     tt = teacher.add_parser("train", help="train a teacher (presets: cpu-small = 2-core CPU in minutes; paper = GPU scale)")
@@ -553,7 +581,9 @@ def build_parser() -> argparse.ArgumentParser:
     vw.add_argument("--host", default="127.0.0.1", help="0.0.0.0 exposes the viewer to other devices on the network")
     vw.add_argument("--benchmark", action="store_true", help="measure ms/frame at 512x512 and 1280x720 in headless chromium")
     vw.add_argument("--frame-mult", type=int, default=1, help="draws per animation frame while benchmarking")
-    vw.add_argument("--frames", type=int, default=6, help="timed animation frames per view (after 2 warm-up frames)")
+    vw.add_argument("--frames", type=int, default=6, help="timed animation frames per view")
+    vw.add_argument("--warmup", type=int, default=2, help="discarded animation frames per view")
+    vw.add_argument("--max-views", type=int, help="benchmark only the first N views (default: every test view)")
     vw.add_argument("--gpu", action="store_true", help="benchmark on the machine's GPU instead of SwiftShader")
     vw.add_argument("--json", action="store_true")
     vw.set_defaults(func=cmd_view)
@@ -577,8 +607,8 @@ def cmd_view(args) -> int:
     if args.benchmark:
         from nerfbake.viewer.browser import run_benchmark
 
-        result = run_benchmark(scene, frame_mult=args.frame_mult, frames_per_view=args.frames,
-                               software_gl=not args.gpu)
+        result = run_benchmark(scene, frame_mult=args.frame_mult, frames_per_view=args.frames, warmup=args.warmup,
+                               max_views=args.max_views, software_gl=not args.gpu)
         if args.json:
             _print_json(result)
         else:

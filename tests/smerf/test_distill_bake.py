@@ -18,7 +18,7 @@ from nerfbake.smerf.distill import DistillConfig, distill, load_student
 from nerfbake.smerf.partition import PartitionError
 from nerfbake.smerf.student import StudentConfig
 from nerfbake.smerf.validate import asset_problems
-from tests.helpers import devices
+from tests.helpers import devices, tiny_distill_config
 
 
 # --- the lookup kernel --------------------------------------------------------------------------------------------
@@ -82,17 +82,6 @@ def test_occupancy_packing_and_distance_grid_follow_the_viewer_rules():
 
 # --- distil, bake, evaluate on the tiny scene ----------------------------------------------------------------------
 
-def tiny_distill_config(steps=60) -> DistillConfig:
-    return DistillConfig(preset="test", steps=steps, batch_patches=64, checkpoint_every=20, val_every=0, warmup_steps=5,
-                         empty_space_points=4096,
-                         student=StudentConfig(sparse_resolution=32, triplane_resolution=128))
-
-
-@pytest.fixture(scope="module")
-def tiny_student(tiny_teacher, tmp_path_factory):
-    return distill(tiny_teacher, tmp_path_factory.mktemp("student") / "s", tiny_distill_config())
-
-
 def test_distillation_learns_and_resumes_to_the_same_student(tiny_teacher, tiny_student, tmp_path):
     from nerfbake.data.formats import load_dataset
     from nerfbake.smerf.distill import render_student_camera
@@ -116,13 +105,6 @@ def test_distillation_learns_and_resumes_to_the_same_student(tiny_teacher, tiny_
     sa, sb = load_student(a)[0], load_student(tmp_path / "b")[0]
     for name, pa in sa.state_dict().items():  # bit-identical: every step's randomness comes from (seed, step)
         assert torch.equal(pa, sb.state_dict()[name]), name
-
-
-@pytest.fixture(scope="module")
-def tiny_assets_dir(tiny_student, tmp_path_factory):
-    out = tmp_path_factory.mktemp("assets") / "baked"
-    bake_student(tiny_student, out, stride=1)
-    return out
 
 
 def median_alive(sm) -> torch.Tensor:
@@ -255,30 +237,17 @@ def test_bad_input_gives_clear_errors_and_no_half_written_output(tiny_student, t
 
 # --- K = 2 on the two-room scene ----------------------------------------------------------------------------------
 
-@pytest.fixture(scope="module")
-def rooms_teacher(tmp_path_factory):
-    from nerfbake.data.synth import SynthConfig, render_dataset
-    from nerfbake.teacher.train import train_teacher
-    from tests.helpers import tiny_config
-
-    scene = render_dataset(SynthConfig("rooms", 32, 32, views=12, spp=4, seed=0), tmp_path_factory.mktemp("rooms") / "scene")
-    cfg = replace(tiny_config(steps=80), checkpoint_every=1000, val_every=10_000)
-    return train_teacher(scene, tmp_path_factory.mktemp("rooms_teacher") / "run", cfg)
-
-
-def test_two_rooms_with_k2_bake_one_valid_folder_per_alive_submodel(rooms_teacher, tmp_path):
-    cfg = replace(tiny_distill_config(steps=20), k=2)
-    student_dir = distill(rooms_teacher, tmp_path / "student", cfg)
+def test_two_rooms_with_k2_bake_one_valid_folder_per_alive_submodel(rooms_k2):
+    student_dir, assets = rooms_k2
     student = load_student(student_dir)[0]
     part = student.partition
     assert part.num_alive >= 2 and student.sparse.shape[0] == part.num_alive * 32 ** 3
     log = [json.loads(line) for line in (student_dir / "metrics.jsonl").open()]
     assert "consistency" in log[-1]  # the neighbour-consistency loss ran
-    bake_student(student_dir, tmp_path / "assets")
-    folders = sorted(p.name for p in (tmp_path / "assets").glob("sm_*"))
+    folders = sorted(p.name for p in assets.glob("sm_*"))
     assert folders == [f"sm_{i:03d}" for i in part.params_to_sm]
-    assert asset_problems(tmp_path / "assets") == []
-    scene = SceneAssets.open(tmp_path / "assets")
+    assert asset_problems(assets) == []
+    scene = SceneAssets.open(assets)
     assert scene.params["num_local_submodels"] == part.num_alive and scene.params["num_submodels"] == 8
     assert scene.mlp["ResampleDense_0/kernel"].shape[0] == part.num_alive
 

@@ -90,9 +90,10 @@ class ViewerPage:
     def state(self) -> dict:
         return self.evaluate("() => window.nerfbake.state()")
 
-    def benchmark(self, width: int, height: int, frame_mult: int = 1, frames_per_view: int = 6, warmup: int = 2) -> dict:
-        return self.evaluate("([w, h, k, n, m]) => window.nerfbake.benchmark(w, h, k, n, m)",
-                             [width, height, frame_mult, frames_per_view, warmup])
+    def benchmark(self, width: int, height: int, frame_mult: int = 1, frames_per_view: int = 6, warmup: int = 2,
+                  max_views: int | None = None) -> dict:
+        return self.evaluate("([w, h, k, n, m, v]) => window.nerfbake.benchmark(w, h, k, n, m, v)",
+                             [width, height, frame_mult, frames_per_view, warmup, max_views or 0])
 
 
 def octree_camera(cam) -> dict:
@@ -101,13 +102,13 @@ def octree_camera(cam) -> dict:
             "fx": cam.fx, "fy": cam.fy, "cx": cam.cx, "cy": cam.cy}
 
 
-def run_benchmark(scene: str | Path, sizes=((512, 512), (1280, 720)), frame_mult: int = 1, frames_per_view: int = 6,
-                  software_gl: bool = True) -> dict:
+def run_benchmark(scene, sizes=((512, 512), (1280, 720)), frame_mult: int = 1, frames_per_view: int = 6, warmup: int = 2,
+                  max_views: int | None = None, software_gl: bool = True) -> dict:
     """Mean ms/frame per size over the scene's benchmark views, measured in the browser."""
-    out = {"scene": str(scene), "sizes": []}
+    out = {"scene": str(getattr(scene, "root", scene)), "sizes": []}
     with ViewerPage(scene, size=(256, 256), software_gl=software_gl) as page:
         for w, h in sizes:
-            out["sizes"].append(page.benchmark(w, h, frame_mult, frames_per_view))
+            out["sizes"].append(page.benchmark(w, h, frame_mult, frames_per_view, warmup, max_views))
         out["console_errors"] = page.errors
     first = out["sizes"][0]
     out.update(kind=first["kind"], renderer=first["renderer"])

@@ -228,10 +228,11 @@ class App {
 
   // Each view is drawn `frameMult` times per animation frame so the display refresh does not cap the figure;
   // warm-up frames are discarded; the result is the mean frame time per view.
-  async benchmark(width, height, frameMult = 1, framesPerView = 6, warmup = 2) {
+  async benchmark(width, height, frameMult = 1, framesPerView = 6, warmup = 2, maxViews = 0) {
     this.running = false;
     const target = new RenderTarget(this.gl, width, height);
-    const views = this.benchmarkViews(width, height);
+    let views = this.benchmarkViews(width, height);
+    if (maxViews > 0) views = views.slice(0, maxViews);
     if (!views.length) throw new ViewerError('the scene has no test_frames.json views to benchmark');
     const perView = [];
     for (const [i, cam] of views.entries()) {
@@ -279,7 +280,7 @@ window.nerfbake = {
     cam.projection ? {...cam, invProjection: invert4(cam.projection)} : cam, w, h),
   setPose: (position, forward) => app.controls.setPose(position, forward),
   lookRotation,
-  benchmark: (w, h, k, n, warm) => app.benchmark(w, h, k, n, warm),
+  benchmark: (w, h, k, n, warm, views) => app.benchmark(w, h, k, n, warm, views),
 };
 app.start().then(() => resolveReady(true), (e) => { fail(e); rejectReady(e); });
 if (params.get('benchmark') === '1') {

@@ -1,0 +1,160 @@
+"""The web viewer in a real headless chromium (SwiftShader here): its pictures against the Python renderers on the
+same views, streaming across submodels, benchmark output, and the server's path rules."""
+import gzip
+import http.client
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from nerfbake.cli import main
+from tests.conftest import shared_data
+
+pytestmark = pytest.mark.skipif(shutil.which("chromium") is None, reason="needs Debian's chromium (make test installs it)")
+
+
+def psnr(a: np.ndarray, b: np.ndarray) -> float:
+    mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2) / 255.0 ** 2
+    return float(10 * np.log10(1.0 / max(mse, 1e-12)))
+
+
+# --- server ---------------------------------------------------------------------------------------------------------
+
+def _get(server, path):
+    conn = http.client.HTTPConnection("127.0.0.1", server.port, timeout=10)
+    conn.request("GET", path)
+    res = conn.getresponse()
+    return res.status, dict(res.getheaders()), res.read()
+
+
+def test_server_serves_gzip_assets_and_refuses_paths_outside_its_folders(tmp_path):
+    from nerfbake.viewer.server import SceneError, ViewerServer, find_scene
+
+    assets = tmp_path / "scene"
+    shutil.copytree(shared_data("smerf_tiny"), assets)
+    (tmp_path / "secret.txt").write_text("not for the browser")
+    with ViewerServer(assets, port=0) as server:
+        status, headers, body = _get(server, "/scene/sm_000/sparse_grid_block_indices.raw")
+        assert status == 200 and headers["Content-Encoding"] == "gzip" and "max-age" in headers["Cache-Control"]
+        assert gzip.decompress(body) == gzip.decompress((assets / "sm_000" / "sparse_grid_block_indices.raw.gz").read_bytes())
+        status, headers, body = _get(server, "/scene/sm_000/deferred_mlp.json")
+        assert status == 200 and "ResampleDense_0/kernel" in json.loads(gzip.decompress(body))
+        assert _get(server, "/")[0] == 200 and _get(server, "/viewer/main.js")[1]["Content-Type"] == "text/javascript"
+        info = json.loads(_get(server, "/scene.json")[2])
+        assert info["kind"] == "smerf" and info["entry"] == "sm_000" and info["submodels"] == ["sm_000"]
+        for bad in ("/scene/../secret.txt", "/scene/%2e%2e/secret.txt", "/scene/sm_000/../../secret.txt",
+                    "/scene//etc/passwd", "/scene/%2Fetc%2Fpasswd", "/viewer/../server.py"):
+            status, _, body = _get(server, bad)
+            assert status == 403 and b"not for the browser" not in body, bad
+        assert _get(server, "/scene/sm_000/nothing.raw")[0] == 404
+        assert _get(server, "/elsewhere")[0] == 404
+    tree = tmp_path / "t.npz"
+    tree.write_bytes((shared_data("octree_fixtures") / "good_svox_raw.npz").read_bytes())
+    with ViewerServer(tree, port=0) as server:
+        assert _get(server, "/scene/t.npz")[0] == 200
+        assert _get(server, "/scene/secret.txt")[0] == 403  # only the tree, not the files beside it
+    with pytest.raises(SceneError, match="not a SMERF asset directory"):
+        find_scene(tmp_path)
+    with pytest.raises(FileNotFoundError, match="no such scene"):
+        find_scene(tmp_path / "missing")
+    assert main(["view", str(tmp_path / "secret.txt")]) == 2
+
+
+# --- pictures against the Python renderers ----------------------------------------------------------------------------
+
+@pytest.mark.parametrize("which", ["ours", "official"])
+def test_smerf_view_matches_the_python_renderer(which, tiny_assets_dir):
+    from nerfbake.smerf.assets import SceneAssets
+    from nerfbake.smerf.baked_render import read_test_frames, render_baked
+    from nerfbake.viewer.browser import ViewerPage
+
+    assets = tiny_assets_dir if which == "ours" else shared_data("smerf_tiny")
+    w, h = (48, 40) if which == "ours" else (80, 50)
+    scene = SceneAssets.open(assets)
+    cam = read_test_frames(scene.root / "sm_000" / "test_frames.json", w, h)[0]
+    ref = np.round(render_baked(scene, cam) * 255)
+    with ViewerPage(assets) as page:
+        img = page.render_test_view(0, w, h)
+        assert page.errors == []
+    assert ref.std() > 5  # the view shows something
+    assert psnr(img, ref) >= 35
+
+
+@pytest.mark.parametrize("which,query", [("built", ""), ("built", "maxTextureSize=64"), ("svox", ""),
+                                         ("svox-deflate", ""), ("compressed", "")])
+def test_octree_view_matches_the_python_renderer(which, query, tiny_tree, tiny_scene):
+    from nerfbake.data.cameras import Camera
+    from nerfbake.data.formats import load_dataset
+    from nerfbake.octree.io import load_tree
+    from nerfbake.octree.render import RenderOptions, render_camera
+    from nerfbake.viewer.browser import ViewerPage, octree_camera
+
+    if which == "built":
+        path = tiny_tree
+        cam = load_dataset(tiny_scene).frames[load_dataset(tiny_scene).split("test")[0]].camera
+    else:
+        name = {"svox": "good_svox_raw.npz", "svox-deflate": "good_svox_deflate.npz", "compressed": "good_compressed_numpy.npz"}
+        path = shared_data("octree_fixtures") / name[which]
+        tree = load_tree(path)
+        c = ((0.5 - tree.offset) / tree.invradius).numpy()  # the sphere's centre, seen from an oblique direction
+        eye = c + np.array([0.9, -1.1, 0.7]) / tree.invradius.numpy() * 1.2
+        f = (c - eye) / np.linalg.norm(c - eye)
+        r = np.cross(f, [0, 0, 1.0])
+        r /= np.linalg.norm(r)
+        c2w = np.eye(4)
+        c2w[:3, :3] = np.stack([r, np.cross(r, f), -f], 1)
+        c2w[:3, 3] = eye
+        cam = Camera(c2w, 40, 32, 40.0, 40.0, 20.0, 16.0)
+    ref = np.round(np.clip(render_camera(load_tree(path), cam, RenderOptions())["rgb"], 0, 1) * 255)
+    with ViewerPage(path, query=query) as page:
+        img = page.render_camera(octree_camera(cam), cam.width, cam.height)
+        state = page.state()
+        assert page.errors == []
+    if query:
+        assert state["tiles"]["data"]["layers"] > 1  # one texture would exceed the limit: tiled over layers
+    assert ref.std() > 5
+    assert psnr(img, ref) >= 35
+
+
+# --- streaming ----------------------------------------------------------------------------------------------------------
+
+def test_streaming_across_submodels_keeps_two_resident_and_evicts_lru(rooms_k2):
+    from nerfbake.smerf.assets import SceneAssets
+    from nerfbake.smerf.baked_render import submodel_center
+    from nerfbake.viewer.browser import ViewerPage
+
+    _, assets = rooms_k2
+    scene = SceneAssets.open(assets)
+    n = scene.params["num_local_submodels"]
+    assert n >= 3
+    centers = [submodel_center(scene.params, i) for i in range(n)]
+    start = ",".join(str(v) for v in [*centers[0], 0.0, 0.0, -1.0])  # in submodel 0, looking down -z
+    with ViewerPage(assets, query=f"submodelCacheSize=1&frameLog=1&mouseMode=fly&pose={start}", size=(48, 32)) as page:
+        for target in [1, 2, 0, 1]:
+            page.evaluate("() => window.nerfbake.clearFrameLog()")
+            page.evaluate("([p, f]) => window.nerfbake.setPose(p, f)", [list(centers[target]), [0.0, 0.0, -1.0]])
+            page.page.wait_for_function(f"() => window.nerfbake.state().active === {target}", timeout=120_000)
+            page.page.wait_for_function("() => window.nerfbake.frameLog().length > 2", timeout=120_000)
+            log = page.evaluate("() => window.nerfbake.frameLog()")
+            assert all(f["drawn"] and f["mean"] > 1.0 for f in log), log  # never a black frame while loading
+            assert all(len(f["resident"]) <= 2 for f in log)
+        state = page.state()
+        assert page.errors == []
+    assert state["fetches"][:4] == [0, 1, 2, 0]  # 0 again: evicted from the 1-entry host cache, fetched anew
+    assert state["evictions"][:3] == [0, 1, 2] and len(state["hostCache"]) == 1
+    assert len(state["resident"]) == 2 and state["active"] == 1
+
+
+# --- benchmark ----------------------------------------------------------------------------------------------------------
+
+def test_view_benchmark_prints_ms_per_frame_for_both_sizes(tiny_tree, capsys):
+    quick = ["--benchmark", "--frames", "1", "--warmup", "1", "--max-views", "1", "--json"]
+    assert main(["view", str(shared_data("smerf_tiny")), *quick]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["kind"] == "smerf" and out["console_errors"] == []
+    for key in ("ms_per_frame_512x512", "ms_per_frame_1280x720"):
+        assert out[key] > 0
+    assert main(["view", str(tiny_tree), *quick]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["kind"] == "octree" and out["ms_per_frame_1280x720"] > 0 and len(out["sizes"][0]["views"]) == 1
