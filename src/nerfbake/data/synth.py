@@ -5,6 +5,10 @@ Scenes are deterministic by seed and Z-up like the NeRF-synthetic scenes:
 * ``objects`` — object-centric, RGBA: a glossy red sphere, a rough-metal sphere and a diffuse cube on a
   pedestal, lit by an environment map with a sun, so highlights move with the viewpoint. Cameras on the
   upper hemisphere looking at the origin.
+* ``textured`` — the ``objects`` layout with unique (non-repeating "dead leaves") textures on every object and
+  only broad highlights, so every view has distinctive, 3D-consistent features: what structure from motion
+  (``nerfbake process``) needs. The plain scene's polar checkerboard repeats every 60°, its spheres are
+  featureless or mirror-like.
 * ``rooms`` — indoor, opaque: two rooms joined by a doorway, each with its own ceiling light and objects,
   cameras inside both rooms (what SMERF's camera partitioning is for).
 
@@ -25,6 +29,7 @@ import numpy as np
 
 SCENES = {
     "objects": "object-centric RGBA scene: glossy + rough-metal spheres and a cube under an environment light",
+    "textured": "the objects scene with non-repeating noise textures (feature-rich, for structure from motion)",
     "rooms": "two connected rooms with cameras inside both (indoor, opaque, for partitioning)",
 }
 
@@ -122,6 +127,41 @@ def _objects_scene(mi, seed: int) -> tuple[dict, dict]:
     return scene, meta
 
 
+def _noise_texture(seed: int, size: int = 512) -> np.ndarray:
+    """A "dead leaves" texture: overlapping random discs of many sizes and colours. High contrast, corners at
+    every scale and no repetition, so every patch is distinctive."""
+    rng = np.random.default_rng(seed)
+    img = np.full((size, size, 3), 0.5, np.float32)
+    yy, xx = np.mgrid[0:size, 0:size]
+    for _ in range(700):
+        r = size * 0.012 / rng.uniform(0.08, 1.0)  # more small discs than large ones (radius ~ 1/uniform)
+        cx, cy = rng.uniform(0, size, 2)
+        mask = (xx - cx) ** 2 + (yy - cy) ** 2 < r * r
+        img[mask] = rng.uniform(0.03, 0.97, 3)
+    return img
+
+
+FLOOR_RADIUS = 2.5
+
+
+def _textured_scene(mi, seed: int) -> tuple[dict, dict]:
+    scene, meta = _objects_scene(mi, seed)
+
+    def tex(k):
+        return {"type": "bitmap", "bitmap": mi.Bitmap(_noise_texture(seed * 7 + k)), "filter_type": "bilinear"}
+
+    # A wide textured floor: features across the whole frame pin down rotations (a small object alone leaves a
+    # rotation/translation ambiguity of about a degree).
+    scene["pedestal"]["bsdf"]["bsdf"]["reflectance"] = tex(1)
+    scene["pedestal"]["to_world"] = mi.ScalarTransform4f().scale([FLOOR_RADIUS, FLOOR_RADIUS, 1.0])
+    meta["objects"]["pedestal"]["radius"] = FLOOR_RADIUS
+    scene["cube"]["bsdf"]["reflectance"] = tex(2)
+    # Broad highlights only: sharp reflections of the textured pedestal would be features that move with the view.
+    scene["glossy_sphere"]["bsdf"].update(alpha=0.3, diffuse_reflectance=tex(3))
+    scene["metal_sphere"]["bsdf"] = {"type": "roughplastic", "alpha": 0.3, "diffuse_reflectance": tex(4)}
+    return scene, meta
+
+
 def _rooms_scene(mi, seed: int) -> tuple[dict, dict]:
     T = mi.ScalarTransform4f
     H = 1.5
@@ -180,7 +220,7 @@ def camera_poses(cfg: SynthConfig, meta: dict, count: int, rng: np.random.Genera
     """Poses for one split; train views are random, val/test follow an orbit or a walk through both rooms."""
     poses = []
     for i in range(count):
-        if cfg.scene == "objects":
+        if cfg.scene in ("objects", "textured"):
             if kind == "train":
                 az, el = rng.uniform(0, 2 * math.pi), rng.uniform(math.radians(10), math.radians(70))
             else:
@@ -216,13 +256,13 @@ def render_dataset(cfg: SynthConfig, out: Path, progress=None) -> Path:
     if min(cfg.width, cfg.height, cfg.views, cfg.spp) <= 0:
         raise ValueError("width, height, views and spp must be positive")
     variant = set_variant()
-    build = _objects_scene if cfg.scene == "objects" else _rooms_scene
+    build = {"objects": _objects_scene, "textured": _textured_scene, "rooms": _rooms_scene}[cfg.scene]
     scene_dict, meta = build(mi, cfg.seed)
     fov_x = cfg.fov_deg if cfg.width >= cfg.height else math.degrees(2 * math.atan(math.tan(math.radians(cfg.fov_deg) / 2) * cfg.width / cfg.height))
     scene_dict["sensor"] = {
         "type": "perspective", "fov": fov_x, "fov_axis": "x",
         "film": {"type": "hdrfilm", "width": cfg.width, "height": cfg.height, "rfilter": {"type": "gaussian"},
-                 "pixel_format": "rgba" if cfg.scene == "objects" else "rgb"},
+                 "pixel_format": "rgb" if cfg.scene == "rooms" else "rgba"},
         "sampler": {"type": "independent", "sample_count": cfg.spp},
     }
     scene = mi.load_dict(scene_dict)

@@ -1,0 +1,122 @@
+"""How good are the poses ``nerfbake process`` recovers? Synthetic views with known cameras -> SfM -> pose errors
+after a similarity (Umeyama) alignment, and (``--teacher-steps`` > 0) test PSNR of a hash teacher trained on the
+recovered poses against one trained on the ground-truth poses (same preset, same images, same split).
+
+    python benchmarks/process_quality.py [--size 256] [--views 32] [--teacher-steps 1000] [--work DIR]
+    -> one JSON object on stdout
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from nerfbake.data.process import ProcessConfig, process
+from nerfbake.data.synth import SynthConfig, render_dataset
+from nerfbake.train.loop import git_revision
+
+
+def umeyama(src, dst):
+    mu_s, mu_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mu_s, dst - mu_d
+    u, d, vt = np.linalg.svd(xd.T @ xs / len(src))
+    fix = np.eye(3)
+    if np.linalg.det(u) * np.linalg.det(vt) < 0:
+        fix[2, 2] = -1
+    rot = u @ fix @ vt
+    return np.trace(np.diag(d) @ fix) / ((xs ** 2).sum() / len(src)), rot, mu_d - (np.trace(np.diag(d) @ fix) / ((xs ** 2).sum() / len(src))) * rot @ mu_s
+
+
+def angle(r):
+    return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1))))
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--size", type=int, default=256)
+    ap.add_argument("--views", type=int, default=32, help="training views rendered (val/test add a quarter each)")
+    ap.add_argument("--spp", type=int, default=16)
+    ap.add_argument("--teacher-steps", type=int, default=0, help="0 skips the teacher comparison")
+    ap.add_argument("--work", help="keep everything here (default: a temporary folder, removed)")
+    args = ap.parse_args()
+    work = Path(args.work or tempfile.mkdtemp(prefix="process-quality-"))
+    scene = work / "scene"
+    if not (scene / "transforms_train.json").is_file():
+        render_dataset(SynthConfig("textured", args.size, args.size, views=args.views, spp=args.spp, seed=0), scene)
+    photos, gt, angle_x = work / "photos", {}, None
+    photos.mkdir(exist_ok=True)
+    for split in ("train", "val", "test"):
+        meta = json.loads((scene / f"transforms_{split}.json").read_text())
+        angle_x = meta["camera_angle_x"]
+        for fr in meta["frames"]:
+            stem = Path(fr["file_path"]).name
+            shutil.copyfile(scene / split / f"{stem}.png", photos / f"{split}_{stem}.png")
+            gt[f"{split}_{stem}.png"] = np.array(fr["transform_matrix"])
+    out = work / "processed"
+    if out.exists():
+        shutil.rmtree(out)
+    t0 = time.perf_counter()
+    report = process(ProcessConfig(out=out, images=photos), log=lambda line: None)
+    seconds = time.perf_counter() - t0
+    meta = json.loads((out / "transforms.json").read_text())
+    rec = {Path(f["file_path"]).name: np.array(f["transform_matrix"]) for f in meta["frames"]}
+    names = sorted(rec)
+    a, b = np.stack([rec[n][:3, 3] for n in names]), np.stack([gt[n][:3, 3] for n in names])
+    s, r, t = umeyama(a, b)
+    size = float(np.linalg.norm(b.max(0) - b.min(0)))
+    centre = np.linalg.norm(s * a @ r.T + t - b, axis=1) / size
+    rel = np.array([angle((rec[p][:3, :3].T @ rec[q][:3, :3]).T @ (gt[p][:3, :3].T @ gt[q][:3, :3]))
+                    for i, p in enumerate(names) for q in names[i + 1:]])
+    result = {
+        "git": git_revision(), "scene": f"textured {args.size}x{args.size}, {len(gt)} views, spp {args.spp}",
+        "process_seconds": round(seconds, 1), "timings_s": report["timings_s"],
+        "registered": report["num_registered"], "images": report["num_images"],
+        "mean_reprojection_error_px": report["mean_reprojection_error_px"],
+        "focal_px": meta.get("fl_x"), "focal_gt_px": 0.5 * args.size / np.tan(0.5 * angle_x),
+        "centre_error_frac_of_scene": {"max": float(centre.max()), "mean": float(centre.mean())},
+        "relative_rotation_error_deg": {"max": float(rel.max()), "p95": float(np.percentile(rel, 95)),
+                                        "mean": float(rel.mean()), "median": float(np.median(rel))},
+    }
+    if args.teacher_steps > 0:
+        result["teacher"] = compare_teachers(work, out, gt, angle_x, args.size, args.teacher_steps)
+    print(json.dumps(result, indent=1))
+    if not args.work:
+        shutil.rmtree(work, ignore_errors=True)
+
+
+def compare_teachers(work: Path, processed: Path, gt: dict, angle_x: float, size: int, steps: int) -> dict:
+    """Train the same preset on recovered and on ground-truth poses (same images, same every-8th test split)."""
+    from nerfbake.teacher.evaluate import evaluate_teacher
+    from nerfbake.teacher.presets import preset
+    from nerfbake.teacher.train import train_teacher
+
+    gt_dir = work / "gt_poses"
+    gt_dir.mkdir(exist_ok=True)
+    if not (gt_dir / "images").exists():
+        (gt_dir / "images").symlink_to(processed / "images")
+    focal = 0.5 * size / np.tan(0.5 * angle_x)
+    frames = [{"file_path": f"images/{n}", "transform_matrix": gt[n].tolist()} for n in sorted(gt)]
+    (gt_dir / "transforms.json").write_text(json.dumps({"fl_x": focal, "fl_y": focal, "cx": size / 2, "cy": size / 2,
+                                                         "w": size, "h": size, "frames": frames}))
+    out = {}
+    for name, data in (("ground_truth_poses", gt_dir), ("recovered_poses", processed)):
+        cfg = preset("hash", "cpu-small")
+        cfg.steps = steps
+        run = work / f"teacher_{name}"
+        t0 = time.perf_counter()
+        train_teacher(data, run, cfg)
+        res = evaluate_teacher(run, "test", write_images=False)
+        out[name] = {"test_psnr": res["psnr"], "ssim": res["ssim"], "views": res["num_views"],
+                     "train_seconds": round(time.perf_counter() - t0, 1)}
+    out["psnr_gap_db"] = out["ground_truth_poses"]["test_psnr"] - out["recovered_poses"]["test_psnr"]
+    out["steps"] = steps
+    return out
+
+
+if __name__ == "__main__":
+    main()
