@@ -140,7 +140,8 @@ class App {
     this.fpsEma = this.fpsEma === null ? dt : 0.9 * this.fpsEma + 0.1 * dt;
     this.frames++;
     if (params.has('frameLog')) this.logFrame(drawn);
-    if (this.frames % 10 === 0) this.updateHud(ms);
+    if (drawn) this.lastDrawMs = ms;
+    if (!(now - this.lastHud < 500)) { this.lastHud = now; this.updateHud(this.lastDrawMs || 0); }
     requestAnimationFrame((t) => this.loop(t));
   }
 
@@ -161,7 +162,7 @@ class App {
     const fps = this.fpsEma ? 1 / this.fpsEma : 0;
     const s = this.scene.state();
     const sm = this.scene.kind === 'smerf' ? ` · submodel ${s.active} (resident ${s.resident.join(',')})` : ` · ${s.numLeaves} leaves`;
-    $('fps').textContent = `${fps.toFixed(1)} fps · ${ms.toFixed(1)} ms cpu · ${(this.scene.gpuBytes() / 1e6).toFixed(0)} MB GPU${sm}`;
+    $('fps').textContent = `${fps.toFixed(1)} fps · ${ms.toFixed(1)} ms/draw (cpu) · ${(this.scene.gpuBytes() / 1e6).toFixed(0)} MB GPU${sm}`;
     const cam = this.controls.camera();
     const f = this.controls.forward();
     const pose = [...cam.position, ...f].map((v) => v.toFixed(4)).join(',');
