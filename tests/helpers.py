@@ -32,3 +32,19 @@ def tiny_distill_config(steps=60) -> DistillConfig:
     return DistillConfig(preset="test", steps=steps, batch_patches=64, checkpoint_every=20, val_every=0, warmup_steps=5,
                          empty_space_points=4096,
                          student=StudentConfig(sparse_resolution=32, triplane_resolution=128))
+
+
+def one_and_two_processes(args: list[str], one, two) -> None:
+    """Run ``nerfbake ARGS --out ONE`` in one process and under ``torchrun`` with 2 CPU processes (gloo) into TWO."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    env = {**os.environ, "NERFBAKE_THREADS": "1"}
+    proc = subprocess.run([sys.executable, "-m", "nerfbake", *args, "--out", str(one)], env=env, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    torchrun = Path(sys.executable).with_name("torchrun")
+    proc = subprocess.run([str(torchrun), "--standalone", "--nproc_per_node", "2", "-m", "nerfbake", *args, "--out", str(two)],
+                          env=env, capture_output=True, text=True)
+    assert proc.returncode == 0, proc.stderr[-3000:]

@@ -89,14 +89,10 @@ def cmd_process(args) -> int:
 
 
 def cmd_demo(args) -> int:
-    """Built-in scene -> hash teacher (CPU preset, shortened) -> PlenOctree (build, fine-tune, compress) -> test-view
-    metrics of each. Grows into the whole pipeline."""
-    from nerfbake.data.formats import load_dataset
+    """Built-in scene -> the whole pipeline with shortened CPU settings -> report and the commands to view each result."""
     from nerfbake.data.synth import SynthConfig, render_dataset
-    from nerfbake.progress import console, progress_bar
-    from nerfbake.teacher.evaluate import evaluate_teacher
-    from nerfbake.teacher.presets import preset
-    from nerfbake.teacher.train import train_teacher
+    from nerfbake.pipeline import demo_config, run_pipeline
+    from nerfbake.progress import progress_bar
 
     out = Path(args.out)
     scene_dir = out / "scene"
@@ -105,55 +101,63 @@ def cmd_demo(args) -> int:
         held = max(4, cfg.views // 4)
         with progress_bar("demo: synthesize scene", cfg.views + 2 * held, unit="views") as advance:
             render_dataset(cfg, scene_dir, progress=lambda d, t: advance())
-    ds = load_dataset(scene_dir)
-    info = ds.info()
-    console.print(f"[bold]built-in scene[/bold] {scene_dir}: {info['splits']} views of {info['width']}x{info['height']}")
-    teacher_dir = out / "teacher"
-    tcfg = preset("hash", "cpu-small")
-    tcfg.steps = args.teacher_steps
-    if args.teacher_steps > 0:
-        done = (teacher_dir / "config.json").is_file() and json.loads((teacher_dir / "config.json").read_text()).get("complete")
-        if not done:
-            train_teacher(scene_dir, teacher_dir, tcfg, resume=True)
-        res = evaluate_teacher(teacher_dir, "test", max_views=args.eval_views)
-        summary = {k: res[k] for k in ("psnr", "ssim", "lpips_vgg", "num_views", "seconds_per_view")}
-        console.print(f"[bold]teacher[/bold] {teacher_dir}: test PSNR {res['psnr']:.2f} dB, SSIM {res['ssim']:.4f}, "
-                      f"LPIPS-vgg {res['lpips_vgg']:.4f} on {res['num_views']} views; images in {teacher_dir / 'eval' / 'test'}")
-        report = {"scene": info, "teacher": summary}
-        if args.octree_grid:
-            report["octree"] = demo_octree(teacher_dir, scene_dir, out / "octree", args)
-        _print_json(report)
-    else:
-        _print_json({"scene": info})
-    console.print("SMERF distillation/baking, the viewer and the report are not implemented yet; see the open issues.")
+    pcfg = demo_config(str(out), str(scene_dir), eval_views=args.eval_views)
+    if args.teacher_steps:
+        pcfg.teacher_steps = args.teacher_steps
+    results = run_pipeline(pcfg, log=lambda line: print(line, file=sys.stderr, flush=True))
+    _print_summary(out, results)
     return 0
 
 
-def demo_octree(teacher_dir: Path, scene_dir: Path, out: Path, args) -> dict:
-    """PlenOctree stages of the demo: build, fine-tune, compress, evaluate each (skipping finished stages)."""
-    from dataclasses import replace
+def _print_summary(run: Path, results: dict) -> None:
+    from rich.table import Table
 
-    from nerfbake.octree.build import build_octree, build_preset
-    from nerfbake.octree.compress import compress_tree
-    from nerfbake.octree.evaluate import evaluate_tree
-    from nerfbake.octree.optimize import optimize_preset, optimize_tree
     from nerfbake.progress import console
+    from nerfbake.report import view_commands
 
-    raw, opt, comp = out / "tree.npz", out / "tree_opt.npz", out / "tree_c.npz"
-    if not raw.is_file():
-        build_octree(teacher_dir, raw, replace(build_preset("cpu-small"), grid=args.octree_grid,
-                                               autoscale_grid=max(8, args.octree_grid // 2)))
-    if not opt.is_file():
-        optimize_tree(raw, scene_dir, opt, replace(optimize_preset("cpu-small"), epochs=2, lr=1e5, val_views=2))
-    if not comp.is_file():
-        compress_tree(opt, comp, sigma_thresh=0.5)
-    results = {}
-    for name, path in (("raw", raw), ("optimized", opt), ("compressed", comp)):
-        r = evaluate_tree(path, scene_dir, "test", args.eval_views, repeats=1)
-        results[name] = {k: r[k] for k in ("psnr", "ssim", "lpips_vgg", "ms_per_frame", "num_leaves", "file_bytes")}
-        console.print(f"[bold]octree {name}[/bold] {path}: PSNR {r['psnr']:.2f} dB, SSIM {r['ssim']:.4f}, "
-                      f"{r['ms_per_frame']:.0f} ms/frame, {r['file_bytes'] / 1e6:.2f} MB")
-    return results
+    table = Table(title=f"nerfbake results: {run}")
+    for col in ("method", "PSNR", "SSIM", "LPIPS", "ms/frame", "memory MB", "disk MB"):
+        table.add_column(col, justify="left" if col == "method" else "right")
+    for r in results.get("methods", []):
+        table.add_row(r["method"], f"{r['psnr']:.2f}", f"{r['ssim']:.4f}", f"{r['lpips']:.4f}", f"{r['ms_per_frame']:.1f}",
+                      f"{r['memory_bytes'] / 1e6:.1f}", f"{r['disk_bytes'] / 1e6:.2f}")
+    console.print(table)
+    console.print(f"report: {run / 'report.md'}")
+    for cmd in view_commands(run, results):
+        console.print(f"view:   {cmd}")
+
+
+def cmd_pipeline(args) -> int:
+    from nerfbake.pipeline import PipelineConfig, run_pipeline
+
+    methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
+    teacher = distill = None
+    if args.teacher_config:
+        from nerfbake.teacher.train import config_from_dict as teacher_from_dict
+
+        d = json.loads(Path(args.teacher_config).read_text())
+        teacher = teacher_from_dict(d.get("train", d))
+    if args.distill_config:
+        from nerfbake.smerf.distill import config_from_dict as distill_from_dict
+
+        d = json.loads(Path(args.distill_config).read_text())
+        distill = distill_from_dict(d.get("distill", d))
+    cfg = PipelineConfig(data=args.data, out=args.out, preset=args.preset, methods=methods, k=args.k,
+                         eval_views=args.eval_views or None, teacher_steps=args.teacher_steps,
+                         distill_steps=args.distill_steps, octree_grid=args.octree_grid, octree_epochs=args.octree_epochs,
+                         octree_lr=args.octree_lr, bake_stride=args.bake_stride, teacher=teacher, distill=distill)
+    results = run_pipeline(cfg, stop_after=args.stop_after, log=lambda line: print(line, file=sys.stderr, flush=True))
+    if results:
+        _print_summary(Path(args.out), results)
+    return 0
+
+
+def cmd_report(args) -> int:
+    from nerfbake.report import write_report
+
+    path = write_report(Path(args.run))
+    print(path)
+    return 0
 
 
 def cmd_teacher_train(args) -> int:
@@ -588,14 +592,35 @@ def build_parser() -> argparse.ArgumentParser:
     vw.add_argument("--json", action="store_true")
     vw.set_defaults(func=cmd_view)
 
-    demo = sub.add_parser("demo", help="run the pipeline on the built-in synthetic scene (CPU preset)")
+    pl = sub.add_parser("pipeline", help="teacher -> octree -> SMERF -> evaluation -> report, resumable")
+    pl.add_argument("--data", required=True)
+    pl.add_argument("--out", required=True)
+    pl.add_argument("--preset", default="cpu-small", choices=("cpu-small", "paper"),
+                    help="cpu-small: a 2-core CPU in tens of minutes; paper: GPU scale")
+    pl.add_argument("--methods", default="octree,smerf", help="comma-separated subset of octree,smerf")
+    pl.add_argument("--k", type=int, default=1, help="SMERF partition: K^3 submodels")
+    pl.add_argument("--eval-views", type=int, default=25, help="evenly spaced test views per evaluation (0: all)")
+    pl.add_argument("--teacher-steps", type=int)
+    pl.add_argument("--distill-steps", type=int)
+    pl.add_argument("--octree-grid", type=int)
+    pl.add_argument("--octree-epochs", type=int)
+    pl.add_argument("--octree-lr", type=float)
+    pl.add_argument("--bake-stride", type=int, default=2)
+    pl.add_argument("--teacher-config", help="a teacher training config JSON (e.g. a run's config.json) instead of the preset")
+    pl.add_argument("--distill-config", help="a distillation config JSON instead of the preset")
+    pl.add_argument("--stop-after", help="stop after this stage (e.g. to test resuming)")
+    pl.set_defaults(func=cmd_pipeline)
+    rp = sub.add_parser("report", help="write RUN/report.md (table, plots) from a pipeline run")
+    rp.add_argument("run")
+    rp.set_defaults(func=cmd_report)
+
+    demo = sub.add_parser("demo", help="the whole pipeline on the built-in synthetic scene (CPU, ~10 minutes)")
     demo.add_argument("--out", default="outputs/demo")
     demo.add_argument("--width", type=int, default=160)
     demo.add_argument("--views", type=int, default=48)
     demo.add_argument("--spp", type=int, default=32)
-    demo.add_argument("--teacher-steps", type=int, default=1000, help="hash-teacher steps (0 skips training)")
+    demo.add_argument("--teacher-steps", type=int, help="hash-teacher steps (default 1000)")
     demo.add_argument("--eval-views", type=int, default=6)
-    demo.add_argument("--octree-grid", type=int, default=128, help="PlenOctree dense grid side (0 skips the octree stages)")
     demo.set_defaults(func=cmd_demo)
     return parser
 

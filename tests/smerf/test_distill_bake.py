@@ -3,7 +3,6 @@ differences, a tiny distillation that learns and resumes exactly, baked assets t
 hold exactly the student's quantised values, the baked renderer agreeing with the student, and clear errors."""
 import gzip
 import json
-from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -14,11 +13,11 @@ from nerfbake.kernels.merf_grid import merf_lookup, merf_lookup_reference
 from nerfbake.smerf.assets import AssetError, SceneAssets, load_submodel
 from nerfbake.smerf.bake import (BakeError, atlas_shape, bake_student, distance_grid, max_pool, pack_bits,
                                  plane_texels_in_use, quantize_channels)
-from nerfbake.smerf.distill import DistillConfig, distill, load_student
+from nerfbake.smerf.distill import distill, load_student
 from nerfbake.smerf.partition import PartitionError
 from nerfbake.smerf.student import StudentConfig
 from nerfbake.smerf.validate import asset_problems
-from tests.helpers import devices, tiny_distill_config
+from tests.helpers import devices, one_and_two_processes, tiny_distill_config
 
 
 # --- the lookup kernel --------------------------------------------------------------------------------------------
@@ -254,23 +253,11 @@ def test_two_rooms_with_k2_bake_one_valid_folder_per_alive_submodel(rooms_k2):
 
 def test_two_processes_equal_one(tiny_teacher, tmp_path):
     """torchrun with 2 CPU processes (gloo) distils to the same student as 1 process with the same global batch."""
-    import os
-    import subprocess
-    import sys
-    from pathlib import Path
+    from nerfbake.train.loop import write_json_atomic
 
-    from nerfbake.train.loop import to_jsonable, write_json_atomic
-
-    write_json_atomic(tmp_path / "cfg.json", to_jsonable(tiny_distill_config(steps=4)))
+    write_json_atomic(tmp_path / "cfg.json", tiny_distill_config(steps=4))
     args = ["distill", "--teacher", str(tiny_teacher), "--config", str(tmp_path / "cfg.json")]
-    env = {**os.environ, "NERFBAKE_THREADS": "1"}
-    one = subprocess.run([sys.executable, "-m", "nerfbake", *args, "--out", str(tmp_path / "one")], env=env,
-                         capture_output=True, text=True)
-    assert one.returncode == 0, one.stderr[-2000:]
-    torchrun = Path(sys.executable).with_name("torchrun")
-    two = subprocess.run([str(torchrun), "--standalone", "--nproc_per_node", "2", "-m", "nerfbake", *args,
-                          "--out", str(tmp_path / "two")], env=env, capture_output=True, text=True)
-    assert two.returncode == 0, two.stderr[-3000:]
+    one_and_two_processes(args, tmp_path / "one", tmp_path / "two")
     assert json.loads((tmp_path / "two" / "config.json").read_text())["world_size"] == 2
     (a, _, meta), b = load_student(tmp_path / "one"), load_student(tmp_path / "two")[0]
     torch.testing.assert_close(a.sparse, b.sparse, atol=1e-4, rtol=1e-3)

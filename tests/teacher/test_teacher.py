@@ -1,10 +1,8 @@
 """Teachers on a tiny synthetic scene: SH head vs the rendering core, checkpoints, resume, data parallelism."""
 import json
-import os
 import subprocess
 import sys
 from dataclasses import replace
-from pathlib import Path
 
 import pytest
 import torch
@@ -14,7 +12,7 @@ from nerfbake.render.quadrature import composite, weights_from_density
 from nerfbake.render.sh import eval_sh_color
 from nerfbake.teacher.models import HashTeacherConfig
 from nerfbake.teacher.train import load_teacher, train_teacher
-from tests.helpers import tiny_config
+from tests.helpers import one_and_two_processes, tiny_config
 
 
 def params(run):
@@ -92,14 +90,7 @@ def test_two_processes_equal_one(tiny_scene, tmp_path):
 
     write_json_atomic(tmp_path / "tiny.json", tiny_config(steps=4))
     args = ["teacher", "train", "--data", str(tiny_scene), "--config", str(tmp_path / "tiny.json")]
-    env = {**os.environ, "NERFBAKE_THREADS": "1"}
-    one = subprocess.run([sys.executable, "-m", "nerfbake", *args, "--out", str(tmp_path / "one")], env=env,
-                         capture_output=True, text=True)
-    assert one.returncode == 0, one.stderr[-2000:]
-    torchrun = Path(sys.executable).with_name("torchrun")
-    two = subprocess.run([str(torchrun), "--standalone", "--nproc_per_node", "2", "-m", "nerfbake", *args,
-                          "--out", str(tmp_path / "two")], env=env, capture_output=True, text=True)
-    assert two.returncode == 0, two.stderr[-3000:]
+    one_and_two_processes(args, tmp_path / "one", tmp_path / "two")
     assert json.loads((tmp_path / "two" / "config.json").read_text())["world_size"] == 2
     a, b = params(tmp_path / "one"), params(tmp_path / "two")
     for k in a:

@@ -7,7 +7,6 @@ import contextlib
 import os
 import shutil
 import tempfile
-from pathlib import Path
 
 import numpy as np
 

@@ -1,0 +1,289 @@
+"""``nerfbake pipeline``: teacher -> PlenOctree (build, fine-tune, compress) -> SMERF (distil, bake) -> evaluation of
+every method on the same held-out views -> report.
+
+Each stage writes into its own folder under the run and, when it finishes, a record ``RUN/stages/<name>.json``
+(its result, the settings it ran with, the seconds it took). A re-run skips recorded stages and resumes the
+interrupted one: teacher training and distillation continue from their last checkpoint, file-producing stages
+write to a temporary name and rename, so a crash never leaves a file that looks finished.
+
+Under ``torchrun`` the training stages (teacher, distillation) run data-parallel on every rank; the other stages
+run on rank 0 while the other ranks wait at a barrier.
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+from typing import Callable
+
+from nerfbake.train.loop import DataParallel, write_json_atomic
+
+METHODS = ("octree", "smerf")
+
+
+@dataclass
+class PipelineConfig:
+    data: str
+    out: str
+    preset: str = "cpu-small"
+    methods: tuple[str, ...] = METHODS
+    k: int = 1
+    field: str = "hash"
+    eval_views: int | None = 25  # evenly spaced test views (None: the whole split)
+    # Overrides of the presets (None keeps the preset's value); the demo uses them to fit in minutes.
+    teacher_steps: int | None = None
+    octree_grid: int | None = None
+    octree_epochs: int | None = None
+    octree_lr: float | None = None
+    distill_steps: int | None = None
+    student_sparse: int | None = None
+    student_triplane: int | None = None
+    bake_stride: int = 2
+    timing_repeats: int = 1
+    # Whole training configs instead of the presets (tests use tiny ones).
+    teacher: object | None = None
+    distill: object | None = None
+
+
+@dataclass
+class Stage:
+    name: str
+    method: str  # "teacher", "octree" or "smerf": which --methods entry needs it
+    run: Callable[["PipelineConfig", Path], dict]
+    parallel: bool = False  # every rank takes part (data-parallel training); otherwise rank 0 only
+
+
+# --- stages ---------------------------------------------------------------------------------------------------------
+
+def teacher_config(cfg: PipelineConfig):
+    from nerfbake.teacher.presets import preset
+
+    t = cfg.teacher or preset(cfg.field, cfg.preset)
+    if cfg.teacher_steps:
+        t.steps = cfg.teacher_steps
+    return t
+
+
+def run_teacher(cfg: PipelineConfig, run: Path) -> dict:
+    from nerfbake.teacher.train import train_teacher
+
+    train_teacher(cfg.data, run / "teacher", teacher_config(cfg), resume=True)
+    return {"run": str(run / "teacher")}
+
+
+def eval_teacher(cfg: PipelineConfig, run: Path) -> dict:
+    import torch
+
+    from nerfbake.teacher.evaluate import evaluate_teacher
+    from nerfbake.teacher.train import load_teacher
+
+    res = evaluate_teacher(run / "teacher", "test", cfg.eval_views)
+    model = load_teacher(run / "teacher")[0]
+    weights = 4 * sum(p.numel() for p in model.parameters())
+    ckpt = run / "teacher" / "checkpoint.pt"
+    del model
+    torch.cuda.empty_cache() if torch.cuda.is_available() else None
+    return {"method": f"teacher ({cfg.field})", **metrics_of(res), "ms_per_frame": 1000 * res["seconds_per_view"],
+            "memory_bytes": weights, "disk_bytes": ckpt.stat().st_size, "images": str(run / "teacher" / "eval" / "test")}
+
+
+def octree_paths(run: Path) -> dict[str, Path]:
+    d = run / "octree"
+    return {"raw": d / "tree.npz", "optimized": d / "tree_opt.npz", "compressed": d / "tree_c.npz"}
+
+
+def run_octree_build(cfg: PipelineConfig, run: Path) -> dict:
+    from nerfbake.octree.build import build_octree, build_preset
+
+    b = build_preset(cfg.preset)
+    if cfg.octree_grid:
+        b = replace(b, grid=cfg.octree_grid, autoscale_grid=max(8, min(b.autoscale_grid, cfg.octree_grid // 2)))
+    return build_octree(run / "teacher", octree_paths(run)["raw"], b)
+
+
+def run_octree_optimize(cfg: PipelineConfig, run: Path) -> dict:
+    from nerfbake.octree.optimize import optimize_preset, optimize_tree
+
+    o = optimize_preset(cfg.preset)
+    if cfg.octree_epochs:
+        o = replace(o, epochs=cfg.octree_epochs)
+    if cfg.octree_lr:
+        o = replace(o, lr=cfg.octree_lr)
+    p = octree_paths(run)
+    res = optimize_tree(p["raw"], cfg.data, p["optimized"], o)
+    return {k: v for k, v in res.items() if k != "history"} | {"history": res.get("history", [])}
+
+
+def run_octree_compress(cfg: PipelineConfig, run: Path) -> dict:
+    from nerfbake.octree.compress import compress_tree
+
+    p = octree_paths(run)
+    return compress_tree(p["optimized"], p["compressed"]) or {}
+
+
+def eval_octree(cfg: PipelineConfig, run: Path) -> dict:
+    from nerfbake.octree.evaluate import evaluate_tree
+    from nerfbake.octree.io import load_tree
+
+    out = {}
+    for name, path in octree_paths(run).items():
+        r = evaluate_tree(path, cfg.data, "test", cfg.eval_views, repeats=cfg.timing_repeats)
+        tree = load_tree(path)
+        resident = 4 * (tree.data.numel() + tree.child.numel())  # what the renderers hold (float32 leaves)
+        out[name] = {"method": f"PlenOctree {name}", **metrics_of(r), "ms_per_frame": r["ms_per_frame"],
+                     "memory_bytes": resident, "disk_bytes": r["file_bytes"],
+                     "num_leaves": r["num_leaves"], "device": r.get("device"),
+                     "images": str(path.parent / f"{path.stem}_eval" / "test")}
+    return out
+
+
+def distill_config(cfg: PipelineConfig):
+    from nerfbake.smerf.distill import distill_preset
+
+    d = replace(cfg.distill, k=cfg.k) if cfg.distill else distill_preset(cfg.preset, k=cfg.k)
+    if cfg.distill_steps:
+        d.steps = cfg.distill_steps
+    if cfg.student_sparse:
+        d.student.sparse_resolution = cfg.student_sparse
+    if cfg.student_triplane:
+        d.student.triplane_resolution = cfg.student_triplane
+    return d
+
+
+def run_distill(cfg: PipelineConfig, run: Path) -> dict:
+    from nerfbake.smerf.distill import distill
+
+    distill(run / "teacher", run / "smerf" / "student", distill_config(cfg), resume=True)
+    return {"student": str(run / "smerf" / "student")}
+
+
+def eval_student(cfg: PipelineConfig, run: Path) -> dict:
+    from nerfbake.smerf.evaluate import evaluate_student
+
+    r = evaluate_student(run / "smerf" / "student", cfg.data, "test", cfg.eval_views)
+    return {"method": "SMERF student", **metrics_of(r), "ms_per_frame": r["ms_per_frame"],
+            "memory_bytes": r["peak_submodel_bytes"], "disk_bytes": r["disk_bytes"], "num_submodels": r["num_submodels"],
+            "images": str(run / "smerf" / "student" / "eval" / "test")}
+
+
+def run_bake(cfg: PipelineConfig, run: Path) -> dict:
+    from nerfbake.smerf.bake import bake_student
+
+    return bake_student(run / "smerf" / "student", run / "smerf" / "assets", stride=cfg.bake_stride, overwrite=True)
+
+
+def eval_assets(cfg: PipelineConfig, run: Path) -> dict:
+    from nerfbake.smerf.evaluate import evaluate_assets
+
+    r = evaluate_assets(run / "smerf" / "assets", cfg.data, "test", cfg.eval_views)
+    return {"method": "SMERF baked", **metrics_of(r), "ms_per_frame": r["ms_per_frame"],
+            "memory_bytes": r["peak_submodel_bytes"], "disk_bytes": r["disk_bytes"], "num_submodels": r["num_submodels"],
+            "images": str(run / "smerf" / "assets_eval" / "test")}
+
+
+def metrics_of(r: dict) -> dict:
+    net = r.get("lpips_net", "vgg")
+    return {"psnr": r["psnr"], "ssim": r["ssim"], "lpips": r[f"lpips_{net}"], "lpips_net": net, "num_views": r["num_views"]}
+
+
+STAGES = [
+    Stage("teacher", "teacher", run_teacher, parallel=True),
+    Stage("teacher_eval", "teacher", eval_teacher),
+    Stage("octree_build", "octree", run_octree_build),
+    Stage("octree_optimize", "octree", run_octree_optimize),
+    Stage("octree_compress", "octree", run_octree_compress),
+    Stage("octree_eval", "octree", eval_octree),
+    Stage("distill", "smerf", run_distill, parallel=True),
+    Stage("student_eval", "smerf", eval_student),
+    Stage("bake", "smerf", run_bake),
+    Stage("assets_eval", "smerf", eval_assets),
+]
+
+
+# --- running -----------------------------------------------------------------------------------------------------------
+
+def stage_record(run: Path, name: str) -> dict | None:
+    path = run / "stages" / f"{name}.json"
+    if path.is_file():
+        rec = json.loads(path.read_text())
+        if rec.get("complete"):
+            return rec
+    return None
+
+
+def run_pipeline(cfg: PipelineConfig, stop_after: str | None = None, log: Callable[[str], None] = print) -> dict:
+    """Run (or resume) every stage the chosen methods need; returns the collected results (``RUN/results.json``)."""
+    for m in cfg.methods:
+        if m not in METHODS:
+            raise ValueError(f"unknown method {m!r} in --methods; choose from {', '.join(METHODS)}")
+    run = Path(cfg.out)
+    dp = DataParallel()
+    stages = [s for s in STAGES if s.method == "teacher" or s.method in cfg.methods]
+    settings = asdict(cfg)
+    if dp.is_main:
+        run.mkdir(parents=True, exist_ok=True)
+        prev = run / "pipeline.json"
+        if prev.is_file():
+            old = json.loads(prev.read_text()).get("config", {})
+            changed = {k for k in ("data", "preset", "k", "field") if k in old and old[k] != settings[k]}
+            if changed:
+                raise ValueError(f"{prev}: this run was made with different {', '.join(sorted(changed))}; "
+                                 "use a new --out folder (or delete this one) to start over")
+        write_json_atomic(prev, {"config": settings, "stages": [s.name for s in stages]})
+    t_start = time.perf_counter()
+    for i, stage in enumerate(stages, 1):
+        rec = stage_record(run, stage.name)
+        prefix = f"pipeline [{i}/{len(stages)}] {stage.name}"
+        if rec is not None:
+            log(f"{prefix}: done before ({rec['seconds']:.0f} s), skipped")
+            continue
+        log(f"{prefix}: running (total elapsed {time.perf_counter() - t_start:.0f} s)")
+        t = time.perf_counter()
+        result = None
+        if stage.parallel or dp.is_main:
+            result = stage.run(cfg, run)
+        dp.barrier()
+        if dp.is_main:
+            write_json_atomic(run / "stages" / f"{stage.name}.json", {
+                "complete": True, "seconds": time.perf_counter() - t, "result": result})
+        dp.barrier()
+        if stop_after == stage.name:
+            log(f"{prefix}: stopping here as asked")
+            return {}
+    results = collect_results(run)
+    if dp.is_main:
+        write_json_atomic(run / "results.json", results)
+        from nerfbake.report import write_report
+
+        write_report(run)
+    dp.barrier()
+    return results
+
+
+def collect_results(run: Path) -> dict:
+    """``results.json``: one row per method (quality, speed, memory, disk) plus every stage's record."""
+    run = Path(run)
+    rows = []
+    stages = {}
+    for path in sorted((run / "stages").glob("*.json")):
+        rec = json.loads(path.read_text())
+        stages[path.stem] = {"seconds": rec["seconds"], "result": rec["result"]}
+    for name in ("teacher_eval", "octree_eval", "student_eval", "assets_eval"):
+        res = stages.get(name, {}).get("result")
+        if not res:
+            continue
+        for row in (res.values() if name == "octree_eval" else [res]):
+            rows.append(row)
+    cfg = json.loads((run / "pipeline.json").read_text())["config"] if (run / "pipeline.json").is_file() else {}
+    from nerfbake.train.loop import git_revision
+
+    return {"run": str(run), "config": cfg, "methods": rows, "stages": stages, "git": git_revision()}
+
+
+def demo_config(out: str, data: str, eval_views: int = 6) -> PipelineConfig:
+    """Every stage on the built-in scene, shortened to fit in about ten minutes on two CPU cores."""
+    return PipelineConfig(data=data, out=out, preset="cpu-small", eval_views=eval_views, teacher_steps=1000,
+                          octree_grid=128, octree_epochs=2, octree_lr=1e5, distill_steps=600, student_sparse=64,
+                          student_triplane=256, bake_stride=2)
+

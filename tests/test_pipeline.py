@@ -1,0 +1,78 @@
+"""The resumable pipeline on a tiny scene: every method evaluated, a report written, an interrupted distillation
+resumed, and the report's numbers equal to the per-stage evaluations."""
+import json
+from dataclasses import replace
+
+from nerfbake.cli import main
+from nerfbake.pipeline import PipelineConfig, distill_config, run_pipeline
+from tests.helpers import tiny_config, tiny_distill_config
+
+
+def tiny_pipeline(scene, out, **kw) -> PipelineConfig:
+    return PipelineConfig(data=str(scene), out=str(out), eval_views=2, teacher=replace(tiny_config(steps=40), checkpoint_every=1000),
+                          distill=replace(tiny_distill_config(steps=20), checkpoint_every=5), octree_grid=32,
+                          octree_epochs=1, octree_lr=1e5, bake_stride=1, **kw)
+
+
+def test_pipeline_resumes_an_interrupted_distillation_and_reports_every_method(tiny_scene, tmp_path, capsys):
+    from nerfbake.smerf.distill import distill
+
+    run = tmp_path / "run"
+    cfg = tiny_pipeline(tiny_scene, run)
+    assert run_pipeline(cfg, stop_after="octree_eval") == {}
+    assert not (run / "stages" / "distill.json").exists()
+    # "Ctrl-C" in the middle of distillation: a checkpoint at step 10 of 20, the run not complete
+    distill(run / "teacher", run / "smerf" / "student", distill_config(cfg), stop_at=10)
+    assert not json.loads((run / "smerf" / "student" / "config.json").read_text())["complete"]
+    log = []
+    results = run_pipeline(cfg, log=log.append)
+    assert any("teacher: done before" in line for line in log) and any("octree_eval: done before" in line for line in log)
+    assert json.loads((run / "smerf" / "student" / "config.json").read_text())["complete"]
+    methods = [r["method"] for r in results["methods"]]
+    assert methods == ["teacher (hash)", "PlenOctree raw", "PlenOctree optimized", "PlenOctree compressed",
+                       "SMERF student", "SMERF baked"]
+    for r in results["methods"]:
+        assert r["psnr"] > 10 and r["ms_per_frame"] > 0 and r["disk_bytes"] > 0 and r["memory_bytes"] > 0
+    # the report's numbers are the per-stage evaluation outputs
+    assets_eval = json.loads((run / "smerf" / "assets_eval" / "results_test.json").read_text())
+    assert results["methods"][-1]["psnr"] == assets_eval["psnr"]
+    teacher_eval = json.loads((run / "teacher" / "eval" / "results_test.json").read_text())
+    assert results["methods"][0]["psnr"] == teacher_eval["psnr"]
+    report = (run / "report.md").read_text()
+    assert "| SMERF baked |" in report and "nerfbake view" in report
+    for png in ("quality_vs_time.png", "quality_vs_disk.png", "strip.png", "training.png"):
+        assert (run / "report" / png).stat().st_size > 1000, png
+    # `nerfbake report` rewrites it from the stage records alone
+    (run / "report.md").unlink()
+    assert main(["report", str(run)]) == 0 and (run / "report.md").is_file()
+    assert main(["report", str(tmp_path)]) == 2  # not a pipeline run: a clear error
+    assert "not a `nerfbake pipeline` run" in capsys.readouterr().err
+
+
+def test_pipeline_refuses_a_run_folder_made_with_other_settings(tiny_scene, tmp_path):
+    import pytest
+
+    run = tmp_path / "run"
+    run_pipeline(tiny_pipeline(tiny_scene, run, methods=("octree",)), stop_after="teacher")
+    with pytest.raises(ValueError, match="different k"):
+        run_pipeline(tiny_pipeline(tiny_scene, run, k=2))
+    with pytest.raises(ValueError, match="unknown method"):
+        run_pipeline(tiny_pipeline(tiny_scene, tmp_path / "x", methods=("nerf",)))
+
+
+def test_two_process_pipeline_equals_one(tiny_scene, tmp_path):
+    """`torchrun --nproc_per_node 2 -m nerfbake pipeline ...` (gloo, data-parallel training stages, the rest on
+    rank 0) gives the figures the 1-process run gives."""
+    from nerfbake.train.loop import write_json_atomic
+    from tests.helpers import one_and_two_processes
+
+    write_json_atomic(tmp_path / "teacher.json", replace(tiny_config(steps=6), checkpoint_every=1000))
+    write_json_atomic(tmp_path / "distill.json", tiny_distill_config(steps=4))
+    args = ["pipeline", "--data", str(tiny_scene), "--teacher-config", str(tmp_path / "teacher.json"),
+            "--distill-config", str(tmp_path / "distill.json"), "--eval-views", "1", "--octree-grid", "16",
+            "--octree-epochs", "1", "--octree-lr", "1e5", "--bake-stride", "1"]
+    one_and_two_processes(args, tmp_path / "one", tmp_path / "two")
+    a, b = (json.loads((tmp_path / r / "results.json").read_text())["methods"] for r in ("one", "two"))
+    assert [r["method"] for r in a] == [r["method"] for r in b] and len(a) == 6
+    for ra, rb in zip(a, b):
+        assert abs(ra["psnr"] - rb["psnr"]) < 0.05, (ra["method"], ra["psnr"], rb["psnr"])
