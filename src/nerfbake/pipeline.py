@@ -266,9 +266,11 @@ def collect_results(run: Path) -> dict:
     run = Path(run)
     rows = []
     stages = {}
-    for path in sorted((run / "stages").glob("*.json")):
-        rec = json.loads(path.read_text())
-        stages[path.stem] = {"seconds": rec["seconds"], "result": rec["result"]}
+    for stage in STAGES:  # in pipeline order
+        path = run / "stages" / f"{stage.name}.json"
+        if path.is_file():
+            rec = json.loads(path.read_text())
+            stages[stage.name] = {"seconds": rec["seconds"], "result": rec["result"]}
     for name in ("teacher_eval", "octree_eval", "student_eval", "assets_eval"):
         res = stages.get(name, {}).get("result")
         if not res:

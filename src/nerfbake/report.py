@@ -32,10 +32,9 @@ def _plt():
 def scatter(rows: list[dict], x_key: str, x_label: str, path: Path, scale: float = 1.0) -> None:
     plt = _plt()
     fig, ax = plt.subplots(figsize=(5.5, 3.6), dpi=110)
-    for r in rows:
-        x = r[x_key] * scale
-        ax.scatter([x], [r["psnr"]], s=40)
-        ax.annotate(r["method"], (x, r["psnr"]), textcoords="offset points", xytext=(5, 4), fontsize=8)
+    for r, marker in zip(rows, "osD^vP*X<>"):
+        ax.scatter([r[x_key] * scale], [r["psnr"]], s=45, marker=marker, label=r["method"])
+    ax.legend(fontsize=7, loc="best")
     ax.set_xscale("log")
     ax.set_xlabel(x_label)
     ax.set_ylabel("test PSNR (dB)")
