@@ -34,17 +34,21 @@ def tiny_distill_config(steps=60) -> DistillConfig:
                          student=StudentConfig(sparse_resolution=32, triplane_resolution=128))
 
 
-def one_and_two_processes(args: list[str], one, two) -> None:
-    """Run ``nerfbake ARGS --out ONE`` in one process and under ``torchrun`` with 2 CPU processes (gloo) into TWO."""
+def run_nerfbake(args: list[str], processes: int = 1) -> None:
+    """``nerfbake ARGS`` in a subprocess, under ``torchrun`` with that many CPU processes (gloo) when > 1."""
     import os
     import subprocess
     import sys
     from pathlib import Path
 
     env = {**os.environ, "NERFBAKE_THREADS": "1"}
-    proc = subprocess.run([sys.executable, "-m", "nerfbake", *args, "--out", str(one)], env=env, capture_output=True, text=True)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    torchrun = Path(sys.executable).with_name("torchrun")
-    proc = subprocess.run([str(torchrun), "--standalone", "--nproc_per_node", "2", "-m", "nerfbake", *args, "--out", str(two)],
-                          env=env, capture_output=True, text=True)
+    launcher = [sys.executable] if processes == 1 else [str(Path(sys.executable).with_name("torchrun")), "--standalone",
+                                                        "--nproc_per_node", str(processes)]
+    proc = subprocess.run([*launcher, "-m", "nerfbake", *args], env=env, capture_output=True, text=True)
     assert proc.returncode == 0, proc.stderr[-3000:]
+
+
+def one_and_two_processes(args: list[str], one, two) -> None:
+    """Run ``nerfbake ARGS --out ONE`` in one process and under ``torchrun`` with 2 CPU processes into TWO."""
+    run_nerfbake([*args, "--out", str(one)])
+    run_nerfbake([*args, "--out", str(two)], processes=2)

@@ -72,6 +72,7 @@ def test_two_process_pipeline_equals_one(tiny_scene, tmp_path):
             "--distill-config", str(tmp_path / "distill.json"), "--eval-views", "1", "--octree-grid", "16",
             "--octree-epochs", "1", "--octree-lr", "1e5", "--bake-stride", "1"]
     one_and_two_processes(args, tmp_path / "one", tmp_path / "two")
+    assert json.loads((tmp_path / "two" / "smerf" / "assets" / "bake.json").read_text())["ranks"] == 2
     a, b = (json.loads((tmp_path / r / "results.json").read_text())["methods"] for r in ("one", "two"))
     assert [r["method"] for r in a] == [r["method"] for r in b] and len(a) == 6
     for ra, rb in zip(a, b):

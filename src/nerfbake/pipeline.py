@@ -6,8 +6,9 @@ Each stage writes into its own folder under the run and, when it finishes, a rec
 interrupted one: teacher training and distillation continue from their last checkpoint, file-producing stages
 write to a temporary name and rename, so a crash never leaves a file that looks finished.
 
-Under ``torchrun`` the training stages (teacher, distillation) run data-parallel on every rank; the other stages
-run on rank 0 while the other ranks wait at a barrier.
+Under ``torchrun`` the training stages (teacher, distillation) run data-parallel on every rank, octree building
+deals its grid slabs, cameras and leaf chunks out over the ranks, and baking its submodels; the other stages run on
+rank 0 while the other ranks wait at a barrier.
 """
 from __future__ import annotations
 
@@ -190,13 +191,13 @@ def metrics_of(r: dict) -> dict:
 STAGES = [
     Stage("teacher", "teacher", run_teacher, parallel=True),
     Stage("teacher_eval", "teacher", eval_teacher),
-    Stage("octree_build", "octree", run_octree_build),
+    Stage("octree_build", "octree", run_octree_build, parallel=True),
     Stage("octree_optimize", "octree", run_octree_optimize),
     Stage("octree_compress", "octree", run_octree_compress),
     Stage("octree_eval", "octree", eval_octree),
     Stage("distill", "smerf", run_distill, parallel=True),
     Stage("student_eval", "smerf", eval_student),
-    Stage("bake", "smerf", run_bake),
+    Stage("bake", "smerf", run_bake, parallel=True),
     Stage("assets_eval", "smerf", eval_assets),
 ]
 

@@ -17,7 +17,7 @@ from nerfbake.smerf.distill import distill, load_student
 from nerfbake.smerf.partition import PartitionError
 from nerfbake.smerf.student import StudentConfig
 from nerfbake.smerf.validate import asset_problems
-from tests.helpers import devices, one_and_two_processes, tiny_distill_config
+from tests.helpers import devices, one_and_two_processes, run_nerfbake, tiny_distill_config
 
 
 # --- the lookup kernel --------------------------------------------------------------------------------------------
@@ -249,6 +249,20 @@ def test_two_rooms_with_k2_bake_one_valid_folder_per_alive_submodel(rooms_k2):
     scene = SceneAssets.open(assets)
     assert scene.params["num_local_submodels"] == part.num_alive and scene.params["num_submodels"] == 8
     assert scene.mlp["ResampleDense_0/kernel"].shape[0] == part.num_alive
+
+
+def test_baking_over_two_processes_writes_the_same_files(rooms_k2, tmp_path):
+    """torchrun deals the submodels out over the ranks; the folder equals the one-process bake byte for byte
+    (gzip members carry no time stamp, so bakes are reproducible)."""
+    student, assets = rooms_k2
+    run_nerfbake(["bake", "--student", str(student), "--out", str(tmp_path / "two")], processes=2)
+    assert json.loads((tmp_path / "two" / "bake.json").read_text())["ranks"] == 2
+    ours = sorted(p.relative_to(assets) for p in assets.rglob("*") if p.is_file() and p.name != "bake.json")
+    assert len(ours) > 20 and ours == sorted(p.relative_to(tmp_path / "two") for p in (tmp_path / "two").rglob("*")
+                                             if p.is_file() and p.name != "bake.json")
+    for rel in ours:
+        assert (assets / rel).read_bytes() == (tmp_path / "two" / rel).read_bytes(), rel
+    assert not list(tmp_path.glob(".two.*"))  # the shared temporary folder is gone
 
 
 def test_two_processes_equal_one(tiny_teacher, tmp_path):

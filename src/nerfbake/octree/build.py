@@ -26,6 +26,7 @@ from nerfbake.octree.io import save_tree
 from nerfbake.octree.tree import Octree, tree_from_cells
 from nerfbake.progress import progress_bar
 from nerfbake.teacher.train import load_teacher
+from nerfbake.train.loop import DataParallel, step_generator
 
 
 @dataclass
@@ -89,12 +90,17 @@ def _teacher_occupied(teacher, pts: torch.Tensor) -> torch.Tensor:
     return inside & occ[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
 
 
-def density_grid(teacher, lo: torch.Tensor, hi: torch.Tensor, g: int, chunk: int, desc: str) -> torch.Tensor:
-    """sigma at the cell centres of a g^3 grid over [lo, hi] (0 where the teacher's occupancy grid is empty)."""
+def density_grid(teacher, lo: torch.Tensor, hi: torch.Tensor, g: int, chunk: int, desc: str,
+                 dp: DataParallel | None = None) -> torch.Tensor:
+    """sigma at the cell centres of a g^3 grid over [lo, hi] (0 where the teacher's occupancy grid is empty); under
+    torchrun each rank fills its share of the slabs."""
+    dp = dp or DataParallel()
     sigma = torch.zeros(g, g, g)
     slab = max(1, (1 << 22) // (g * g))
+    starts = list(range(0, g, slab))
     with progress_bar(desc, total=g, unit="slice") as advance:
-        for z0 in range(0, g, slab):
+        for j in dp.mine(len(starts)):
+            z0 = starts[j]
             z1 = min(g, z0 + slab)
             pts = _cell_centres(lo, hi, g, z0, z1)
             live = _teacher_occupied(teacher, pts)
@@ -103,7 +109,7 @@ def density_grid(teacher, lo: torch.Tensor, hi: torch.Tensor, g: int, chunk: int
                 vals[live] = query_density(teacher, pts[live], chunk)
             sigma[:, :, z0:z1] = vals.reshape(g, g, z1 - z0)
             advance(z1 - z0)
-    return sigma
+    return dp.combine(sigma)
 
 
 def autoscale_box(teacher, lo: torch.Tensor, hi: torch.Tensor, cameras, cfg: BuildConfig) -> tuple[torch.Tensor, torch.Tensor]:
@@ -111,7 +117,7 @@ def autoscale_box(teacher, lo: torch.Tensor, hi: torch.Tensor, cameras, cfg: Bui
     autoscale_weight. The authors threshold alpha alone; counting only what the views see keeps a teacher's
     floaters in unseen corners from inflating the box."""
     g = cfg.autoscale_grid
-    sigma = density_grid(teacher, lo, hi, g, cfg.chunk, "octree bbox")
+    sigma = density_grid(teacher, lo, hi, g, cfg.chunk, "octree bbox")  # every rank ends with the whole grid
     coarse = BuildConfig(**{**asdict(cfg), "ray_stride": max(2, cfg.ray_stride), "weight_thresh": cfg.autoscale_weight})
     alive = weight_mask(sigma, lo, hi, cameras, coarse, "octree bbox rays") > 0
     if not alive.any():
@@ -125,7 +131,10 @@ def autoscale_box(teacher, lo: torch.Tensor, hi: torch.Tensor, cameras, cfg: Bui
 
 
 def weight_mask(sigma: torch.Tensor, lo, hi, cameras, cfg: BuildConfig, desc: str = "octree weights") -> torch.Tensor:
-    """uint8 G^3: voxels with compositing weight >= cfg.weight_thresh on some training ray."""
+    """uint8 G^3: voxels with compositing weight >= cfg.weight_thresh on some training ray (under torchrun each
+    rank marches its share of the cameras)."""
+    dp = DataParallel()
+    cameras = [cameras[i] for i in dp.mine(len(cameras))]
     g = sigma.shape[0]
     voxel_len = float(((hi - lo) / g).max()) * math.sqrt(3.0)
     skip_sigma = -math.log(1.0 - 0.1 * cfg.weight_thresh) / voxel_len
@@ -140,7 +149,7 @@ def weight_mask(sigma: torch.Tensor, lo, hi, cameras, cfg: BuildConfig, desc: st
             d = rays["directions"][:: cfg.ray_stride, :: cfg.ray_stride].reshape(-1, 3)
             mark_visible_voxels(o, d, sigma, block_live, lo.tolist(), hi.tolist(), cfg.weight_thresh, keep)
             advance(o.shape[0])
-    return keep
+    return dp.combine(keep, "max")
 
 
 @torch.no_grad()
@@ -157,7 +166,7 @@ def fill_leaves(tree: Octree, teacher, cfg: BuildConfig, cells: np.ndarray) -> N
     kept = torch.from_numpy(np.isin(key, kept_key) & (leaves["depth"] == tree.depth_limit).numpy())
     leaves = {k: v[kept] for k, v in leaves.items()}
     n, m = leaves["index"].numel(), cfg.samples_per_leaf
-    gen = torch.Generator().manual_seed(cfg.seed)
+    dp = DataParallel()
     dev = next(teacher.parameters()).device
     flat = tree.data.view(-1, tree.data_dim)
     per = max(1, cfg.chunk // m)
@@ -165,11 +174,12 @@ def fill_leaves(tree: Octree, teacher, cfg: BuildConfig, cells: np.ndarray) -> N
     if 3 * nb != 3 * (teacher.sh_degree + 1) ** 2:
         raise ValueError("tree and teacher disagree on the SH degree")
     with progress_bar("octree leaves", total=n, unit="leaf") as advance:
-        for s in range(0, n, per):
+        for j in dp.mine(-(-n // per)):  # chunks dealt out over torchrun ranks; random points seeded per chunk
+            s = j * per
             idx = leaves["index"][s: s + per]
             corner = leaves["corner"][s: s + per]
             size = leaves["size"][s: s + per]
-            u = torch.rand(idx.numel(), m, 3, generator=gen, dtype=torch.float64)
+            u = torch.rand(idx.numel(), m, 3, generator=step_generator(cfg.seed, j), dtype=torch.float64)
             q = corner[:, None, :] + u * size[:, None, None]
             world = tree.tree_to_world(q.reshape(-1, 3)).float()
             sigma, sh = teacher.query(world.to(dev))
@@ -177,6 +187,7 @@ def fill_leaves(tree: Octree, teacher, cfg: BuildConfig, cells: np.ndarray) -> N
             vals[:, -1].clamp_(min=0.0)
             flat[idx] = vals
             advance(idx.numel())
+    dp.combine(flat)  # the other leaves are zero on each rank
 
 
 def build_octree(teacher_run: str | Path, out: str | Path, cfg: BuildConfig) -> dict:
@@ -200,7 +211,11 @@ def build_octree(teacher_run: str | Path, out: str | Path, cfg: BuildConfig) -> 
     del sigma, keep
     tree = tree_from_cells(cells, depth, lo.numpy(), hi.numpy(), 3 * (teacher.sh_degree + 1) ** 2 + 1)
     fill_leaves(tree, teacher, cfg, cells)
-    path = save_tree(tree, out)
+    dp = DataParallel()
+    path = Path(out)
+    if dp.is_main:
+        save_tree(tree, path)
+    dp.barrier()
     summary = {
         "tree": str(path), "teacher": str(teacher_run), "num_leaves": tree.num_leaves, "num_nodes": tree.num_nodes,
         "kept_voxels": int(cells.shape[0]), "depth_limit": depth, "data_format": tree.data_format,

@@ -151,7 +151,7 @@ class AssetWriter:
 
     def write(self, name: str, image: np.ndarray, slice_idx: int = 0, slice_count: int = 1) -> None:
         image = np.ascontiguousarray(image, dtype=np.uint8)
-        (self.folder / name).write_bytes(gzip.compress(image.tobytes(), compresslevel=6))
+        (self.folder / name).write_bytes(gzip.compress(image.tobytes(), compresslevel=6, mtime=0))
         self.meta.append({"dtype": "uint8", "shape": list(image.shape), "format": "raw.gz", "filename": name,
                           "slice_idx": slice_idx, "slice_count": slice_count})
 
@@ -283,29 +283,32 @@ def write_submodel(folder: Path, student, params_idx: int, alive: torch.Tensor, 
     params["asset_metadata"] = w.meta
     text = json.dumps(params)
     (folder / "scene_params.json").write_text(text)
-    (folder / "scene_params.json.gz").write_bytes(gzip.compress(text.encode()))
-    (folder / "deferred_mlp.json.gz").write_bytes(gzip.compress(json.dumps(mlp_json).encode()))
+    (folder / "scene_params.json.gz").write_bytes(gzip.compress(text.encode(), mtime=0))
+    (folder / "deferred_mlp.json.gz").write_bytes(gzip.compress(json.dumps(mlp_json).encode(), mtime=0))
     (folder / "test_frames.json").write_text(json.dumps(frames))
     return {"alive_voxels": int(alive.sum()), "alive_blocks": sizes["num_alive_blocks"],
             "atlas": [sizes["atlas_width"], sizes["atlas_height"], sizes["atlas_depth"]]}
 
 
 def bake_student(student_dir: str | Path, out: str | Path, stride: int = 2, overwrite: bool = False) -> dict:
-    """Bake every alive submodel of a student into ``out/sm_XXX``; returns statistics (also ``out/bake.json``)."""
+    """Bake every alive submodel of a student into ``out/sm_XXX``; returns statistics (also ``out/bake.json``).
+
+    Under ``torchrun`` the submodels are dealt out over the ranks (submodel p on rank p mod N), all writing into
+    one temporary folder beside ``out`` that rank 0 completes and renames once every rank is done."""
     import time
 
     from nerfbake.data.formats import load_dataset
     from nerfbake.smerf.distill import load_student, teacher_background
     from nerfbake.teacher.train import load_teacher
-    from nerfbake.train.loop import default_device
+    from nerfbake.train.loop import DataParallel
 
     out = Path(out)
-    if out.exists() and not overwrite and any(out.iterdir()):
+    dp = DataParallel()
+    if dp.is_main and out.exists() and not overwrite and any(out.iterdir()):
         raise BakeError(f"{out}: exists and is not empty; choose another --out or remove it")
     t_start = time.time()
     student, cfg, meta = load_student(student_dir)
-    dev = default_device()
-    student.to(dev)
+    student.to(dp.device)
     teacher, tcfg, tmeta, _ = load_teacher(Path(meta["teacher"]))
     ds = load_dataset(meta["data"], downscale=meta.get("downscale", 1.0))
     part = student.partition
@@ -317,10 +320,17 @@ def bake_student(student_dir: str | Path, out: str | Path, stride: int = 2, over
     bg = teacher_background(ds)
     mlp_json = student.mlp.export()
     out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    if dp.world == 1:
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    else:  # one name every rank can find
+        tmp = out.parent / f".{out.name}.baking"
+        if dp.is_main:
+            shutil.rmtree(tmp, ignore_errors=True)
+            tmp.mkdir()
+        dp.barrier()
     stats = {"submodels": {}}
     try:
-        for p in range(part.num_alive):
+        for p in range(dp.rank, part.num_alive, dp.world):
             cams = [c for c, h in zip(train_cams, home) if h == p]
             if not cams:
                 raise BakeError(f"submodel {p} has no training cameras; the partition and the dataset disagree")
@@ -334,14 +344,27 @@ def bake_student(student_dir: str | Path, out: str | Path, stride: int = 2, over
             sm_dir = tmp / f"sm_{part.params_to_sm[p]:03d}"
             stats["submodels"][sm_dir.name] = write_submodel(sm_dir, student, p, alive, mlp_json, frames)
             console.print(f"{sm_dir.name}: {stats['submodels'][sm_dir.name]}")
-        stats.update({"seconds": time.time() - t_start, "student": str(Path(student_dir).resolve()),
-                      "num_submodels": part.num_alive, "partition": part.to_json(), "data": meta["data"],
-                      "downscale": meta.get("downscale", 1.0), "threshold": threshold, "ray_stride": stride})
-        (tmp / "bake.json").write_text(json.dumps(stats, indent=2))
-        if out.exists():
-            shutil.rmtree(out)
-        tmp.rename(out)
+        if dp.world > 1:
+            (tmp / f".stats.{dp.rank}.json").write_text(json.dumps(stats["submodels"]))
+            dp.barrier()
+        if dp.is_main:
+            for r in range(1, dp.world):
+                part_stats = tmp / f".stats.{r}.json"
+                stats["submodels"].update(json.loads(part_stats.read_text()))
+            for f in tmp.glob(".stats.*.json"):
+                f.unlink()
+            stats["submodels"] = dict(sorted(stats["submodels"].items()))
+            stats.update({"seconds": time.time() - t_start, "student": str(Path(student_dir).resolve()),
+                          "num_submodels": part.num_alive, "partition": part.to_json(), "data": meta["data"],
+                          "downscale": meta.get("downscale", 1.0), "threshold": threshold, "ray_stride": stride,
+                          "ranks": dp.world})
+            (tmp / "bake.json").write_text(json.dumps(stats, indent=2))
+            if out.exists():
+                shutil.rmtree(out)
+            tmp.rename(out)
+        dp.barrier()
     except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
+        if dp.is_main:
+            shutil.rmtree(tmp, ignore_errors=True)
         raise
-    return stats
+    return json.loads((out / "bake.json").read_text()) if dp.world > 1 else stats

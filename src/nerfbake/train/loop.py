@@ -161,6 +161,16 @@ class DataParallel:
         if self.world > 1:
             dist.barrier()
 
+    def mine(self, n: int) -> range:
+        """Work items 0..n-1 dealt out round-robin: this rank's share."""
+        return range(self.rank, n, self.world)
+
+    def combine(self, tensor: torch.Tensor, op: str = "sum") -> torch.Tensor:
+        """In place, the elementwise sum (or max) over ranks of a tensor each rank filled its share of."""
+        if self.world > 1:
+            dist.all_reduce(tensor, dist.ReduceOp.SUM if op == "sum" else dist.ReduceOp.MAX)
+        return tensor
+
 
 def log_linear_lr(step: int, total: int, lr_init: float, lr_final: float, warmup: int = 0) -> float:
     """Log-linear decay from lr_init to lr_final with an optional linear warm-up (mip-NeRF/Zip-NeRF schedule)."""
