@@ -66,10 +66,17 @@ def teacher_config(cfg: PipelineConfig):
     return t
 
 
+def require_complete(folder: Path) -> None:
+    """Trainers catch Ctrl-C to save a checkpoint and return; the pipeline must not record such a stage as done."""
+    if not json.loads((folder / "config.json").read_text()).get("complete"):
+        raise KeyboardInterrupt(f"{folder}: training stopped before its last step; re-run the pipeline to resume")
+
+
 def run_teacher(cfg: PipelineConfig, run: Path) -> dict:
     from nerfbake.teacher.train import train_teacher
 
     train_teacher(cfg.data, run / "teacher", teacher_config(cfg), resume=True)
+    require_complete(run / "teacher")
     return {"run": str(run / "teacher")}
 
 
@@ -156,6 +163,7 @@ def run_distill(cfg: PipelineConfig, run: Path) -> dict:
     from nerfbake.smerf.distill import distill
 
     distill(run / "teacher", run / "smerf" / "student", distill_config(cfg), resume=True)
+    require_complete(run / "smerf" / "student")
     return {"student": str(run / "smerf" / "student")}
 
 

@@ -320,6 +320,9 @@ def bake_student(student_dir: str | Path, out: str | Path, stride: int = 2, over
     bg = teacher_background(ds)
     mlp_json = student.mlp.export()
     out.parent.mkdir(parents=True, exist_ok=True)
+    if dp.is_main:  # what a killed bake into the same folder left behind
+        for stale in out.parent.glob(f".{out.name}.*"):
+            shutil.rmtree(stale, ignore_errors=True)
     if dp.world == 1:
         tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
     else:  # one name every rank can find
