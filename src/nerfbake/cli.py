@@ -90,6 +90,7 @@ def cmd_process(args) -> int:
 
 def cmd_demo(args) -> int:
     """Built-in scene -> the whole pipeline with shortened CPU settings -> report and the commands to view each result."""
+    from nerfbake.data.formats import load_dataset
     from nerfbake.data.synth import SynthConfig, render_dataset
     from nerfbake.pipeline import demo_config, run_pipeline
     from nerfbake.progress import progress_bar
@@ -102,10 +103,13 @@ def cmd_demo(args) -> int:
         with progress_bar("demo: synthesize scene", cfg.views + 2 * held, unit="views") as advance:
             render_dataset(cfg, scene_dir, progress=lambda d, t: advance())
     pcfg = demo_config(str(out), str(scene_dir), eval_views=args.eval_views)
-    if args.teacher_steps:
-        pcfg.teacher_steps = args.teacher_steps
+    pcfg.methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
+    for name in ("teacher_steps", "octree_grid", "distill_steps", "student_sparse", "student_triplane"):
+        if getattr(args, name):
+            setattr(pcfg, name, getattr(args, name))
     results = run_pipeline(pcfg, log=lambda line: print(line, file=sys.stderr, flush=True))
     _print_summary(out, results)
+    _print_json({"scene": load_dataset(scene_dir).info(), "methods": results["methods"], "report": str(out / "report.md")})
     return 0
 
 
@@ -620,7 +624,12 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--views", type=int, default=48)
     demo.add_argument("--spp", type=int, default=32)
     demo.add_argument("--teacher-steps", type=int, help="hash-teacher steps (default 1000)")
+    demo.add_argument("--octree-grid", type=int, help="PlenOctree dense grid side (default 128)")
+    demo.add_argument("--distill-steps", type=int, help="SMERF distillation steps (default 600)")
+    demo.add_argument("--student-sparse", type=int, help="SMERF sparse grid side S (default 64)")
+    demo.add_argument("--student-triplane", type=int, help="SMERF triplane side T (default 256)")
     demo.add_argument("--eval-views", type=int, default=6)
+    demo.add_argument("--methods", default="octree,smerf", help="comma-separated subset of octree,smerf")
     demo.set_defaults(func=cmd_demo)
     return parser
 

@@ -152,6 +152,7 @@ def distill_config(cfg: PipelineConfig):
     d = replace(cfg.distill, k=cfg.k) if cfg.distill else distill_preset(cfg.preset, k=cfg.k)
     if cfg.distill_steps:
         d.steps = cfg.distill_steps
+        d.warmup_steps = min(d.warmup_steps, max(1, d.steps // 10))  # a short run still leaves its warm-up
     if cfg.student_sparse:
         d.student.sparse_resolution = cfg.student_sparse
     if cfg.student_triplane:
