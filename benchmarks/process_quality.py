@@ -18,22 +18,8 @@ import numpy as np
 
 from nerfbake.data.process import ProcessConfig, process
 from nerfbake.data.synth import SynthConfig, render_dataset
+from nerfbake.eval.poses import angle_deg, umeyama
 from nerfbake.train.loop import git_revision
-
-
-def umeyama(src, dst):
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    xs, xd = src - mu_s, dst - mu_d
-    u, d, vt = np.linalg.svd(xd.T @ xs / len(src))
-    fix = np.eye(3)
-    if np.linalg.det(u) * np.linalg.det(vt) < 0:
-        fix[2, 2] = -1
-    rot = u @ fix @ vt
-    return np.trace(np.diag(d) @ fix) / ((xs ** 2).sum() / len(src)), rot, mu_d - (np.trace(np.diag(d) @ fix) / ((xs ** 2).sum() / len(src))) * rot @ mu_s
-
-
-def angle(r):
-    return float(np.degrees(np.arccos(np.clip((np.trace(r) - 1) / 2, -1, 1))))
 
 
 def main() -> None:
@@ -70,7 +56,7 @@ def main() -> None:
     s, r, t = umeyama(a, b)
     size = float(np.linalg.norm(b.max(0) - b.min(0)))
     centre = np.linalg.norm(s * a @ r.T + t - b, axis=1) / size
-    rel = np.array([angle((rec[p][:3, :3].T @ rec[q][:3, :3]).T @ (gt[p][:3, :3].T @ gt[q][:3, :3]))
+    rel = np.array([angle_deg((rec[p][:3, :3].T @ rec[q][:3, :3]).T @ (gt[p][:3, :3].T @ gt[q][:3, :3]))
                     for i, p in enumerate(names) for q in names[i + 1:]])
     result = {
         "git": git_revision(), "scene": f"textured {args.size}x{args.size}, {len(gt)} views, spp {args.spp}",

@@ -81,8 +81,6 @@ def run_teacher(cfg: PipelineConfig, run: Path) -> dict:
 
 
 def eval_teacher(cfg: PipelineConfig, run: Path) -> dict:
-    import torch
-
     from nerfbake.teacher.evaluate import evaluate_teacher
     from nerfbake.teacher.train import load_teacher
 
@@ -90,8 +88,6 @@ def eval_teacher(cfg: PipelineConfig, run: Path) -> dict:
     model = load_teacher(run / "teacher")[0]
     weights = 4 * sum(p.numel() for p in model.parameters())
     ckpt = run / "teacher" / "checkpoint.pt"
-    del model
-    torch.cuda.empty_cache() if torch.cuda.is_available() else None
     return {"method": f"teacher ({cfg.field})", **metrics_of(res), "ms_per_frame": 1000 * res["seconds_per_view"],
             "memory_bytes": weights, "disk_bytes": ckpt.stat().st_size, "images": str(run / "teacher" / "eval" / "test")}
 

@@ -93,6 +93,11 @@ function setFilter(gl, target, linear) {
   for (const w of [gl.TEXTURE_WRAP_S, gl.TEXTURE_WRAP_T, gl.TEXTURE_WRAP_R]) gl.texParameteri(target, w, gl.CLAMP_TO_EDGE);
 }
 
+// A 3x3 given as rows (r[i][j]) in the column-major order uniformMatrix3fv takes.
+export function mat3ColumnMajor(r) {
+  return [r[0][0], r[1][0], r[2][0], r[0][1], r[1][1], r[2][1], r[0][2], r[1][2], r[2][2]];
+}
+
 export function bindTextures(gl, program, bindings) {
   // bindings: [[uniformName, target, texture], ...] -> consecutive texture units
   bindings.forEach(([name, target, tex], unit) => {

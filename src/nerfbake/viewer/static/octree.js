@@ -1,7 +1,7 @@
 // PlenOctrees (raw and compressed .npz, ours and the authors'): parse the file in the browser, pack the tree into
 // 2D-array textures within the device's limits (tiled over layers when one texture would be too large), and
 // trace each pixel as the Python/Warp renderer does (src/nerfbake/kernels/octree.py), SH up to degree 4.
-import {ViewerError, bindTextures, createProgram, drawFullscreen, fetchBytes, texture2DArray} from './gl.js';
+import {ViewerError, bindTextures, mat3ColumnMajor, createProgram, drawFullscreen, fetchBytes, texture2DArray} from './gl.js';
 import {asFloat, readNpz} from './npz.js';
 
 export class OctreeScene {
@@ -55,12 +55,11 @@ export class OctreeScene {
     const o = this.options;
     const u = this.program.uniforms;
     gl.useProgram(this.program.prog);
-    const r = camera.rotation;
     gl.uniform2f(u.uViewport, width, height);
     gl.uniform2f(u.uPixelOffset, jitter[0], jitter[1]);
     gl.uniform4f(u.uIntrinsics, camera.fx, camera.fy, camera.cx, camera.cy);
     gl.uniform3fv(u.uOrigin, camera.position);
-    gl.uniformMatrix3fv(u.uRotation, false, [r[0][0], r[1][0], r[2][0], r[0][1], r[1][1], r[2][1], r[0][2], r[1][2], r[2][2]]);
+    gl.uniformMatrix3fv(u.uRotation, false, mat3ColumnMajor(camera.rotation));
     gl.uniform3fv(u.uOffset, this.tree.offset);
     gl.uniform3fv(u.uInvRadius, this.tree.invradius);
     gl.uniform3fv(u.uBBoxMin, o.bboxMin);

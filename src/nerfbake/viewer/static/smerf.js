@@ -1,7 +1,7 @@
 // SMERF scenes (ours and the official export alike): submodel choice from the camera position, two GPU-resident
 // submodels (ping-pong: the old one renders until the new one is uploaded), an LRU host cache of decoded
 // submodels, and the deferred MLP interpolated at the camera position on the CPU every frame.
-import {ViewerError, bindTextures, byteArrayTexture, createProgram, drawFullscreen, fetchBytes, fetchJSON,
+import {ViewerError, bindTextures, mat3ColumnMajor, byteArrayTexture, createProgram, drawFullscreen, fetchBytes, fetchJSON,
         texture3D} from './gl.js';
 import {smerfFragment} from './smerf_shader.js';
 
@@ -190,8 +190,7 @@ export class SmerfScene {
     gl.uniform2f(u.uViewport, width, height);
     gl.uniform2f(u.uPixelOffset, jitter[0], jitter[1]);
     gl.uniform3f(u.uOrigin, scale * (camera.position[0] - c[0]), scale * (camera.position[1] - c[1]), scale * (camera.position[2] - c[2]));
-    const r = camera.rotation;
-    gl.uniformMatrix3fv(u.uRotation, false, [r[0][0], r[1][0], r[2][0], r[0][1], r[1][1], r[2][1], r[0][2], r[1][2], r[2][2]]);
+    gl.uniformMatrix3fv(u.uRotation, false, mat3ColumnMajor(camera.rotation));
     gl.uniformMatrix4fv(u.uInvProjection, false, camera.invProjection);
     gl.uniform1f(u.uScale, scale);
     gl.uniform1f(u.uStepMult, this.stepMult);
