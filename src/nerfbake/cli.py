@@ -259,8 +259,9 @@ def cmd_octree_optimize(args) -> int:
 def cmd_octree_compress(args) -> int:
     from nerfbake.octree.compress import compress_tree
 
+    band = {"band_bits": [int(b) for b in args.band_bits.split(",")]} if args.band_bits else {}
     summary = compress_tree(args.tree, args.out, bits=args.bits, retain=args.retain, sigma_thresh=args.sigma_thresh,
-                            sh_degree=args.sh_degree, min_extent=args.min_extent)
+                            sh_degree=args.sh_degree, min_extent=args.min_extent, **band)
     _print_json(summary) if args.json else print(
         f"wrote {summary['tree']}: {summary['file_bytes'] / 1e6:.2f} MB ({summary['ratio']:.1f}x smaller)")
     return 0
@@ -512,6 +513,8 @@ def build_parser() -> argparse.ArgumentParser:
     oc.add_argument("--sigma-thresh", type=float, default=2.0, help="drop leaves with sigma at or below this")
     oc.add_argument("--min-extent", type=float, default=2.0 ** -9,
                     help="do not split codebook cells narrower than this (0 = the authors' always-split median cut)")
+    oc.add_argument("--band-bits", help="codebook bits per SH band, e.g. 16,8,6,4 (the default; capped by --bits; "
+                    "'16' = the authors' quantiser)")
     oc.add_argument("--sh-degree", type=int, help="keep SH bands up to this degree (smaller files; default: all)")
     oc.add_argument("--json", action="store_true")
     oc.set_defaults(func=cmd_octree_compress)

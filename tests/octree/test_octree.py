@@ -229,7 +229,7 @@ def test_median_cut_codebook():
 def test_compress_follows_the_web_layout(tmp_path):
     tree = random_tree(49, seed=4, cells=3000, depth=4)
     save_tree(tree, tmp_path / "raw.npz")
-    info = compress_tree(tmp_path / "raw.npz", tmp_path / "c.npz", bits=16, retain=1, sigma_thresh=2.0)
+    info = compress_tree(tmp_path / "raw.npz", tmp_path / "c.npz", bits=16, retain=1, sigma_thresh=2.0, band_bits=(16,))
     z = np.load(tmp_path / "c.npz")
     assert sorted(z.files) == sorted(["data_dim", "child", "invradius3", "offset", "data_format", "quant_colors",
                                       "quant_map", "sigma", "data_retained"])
@@ -242,9 +242,19 @@ def test_compress_follows_the_web_layout(tmp_path):
     assert torch.allclose(back.data[alive], tree.data[alive], atol=2e-2)
     assert (back.data[~alive][..., -1] == 0).all()
     assert info["leaves_kept"] == int(alive.sum())
+    # fewer entries for higher SH bands: still volrend's 65536-entry layout, indices stay inside each band's budget
+    banded = compress_tree(tmp_path / "raw.npz", tmp_path / "banded.npz", band_bits=(16, 8, 6, 4))
+    assert banded["band_bits"] == [16] + [8] * 3 + [6] * 5 + [4] * 7
+    zb = np.load(tmp_path / "banded.npz")
+    assert volrend_problems(tmp_path / "banded.npz") == [] and zb["quant_colors"].shape == (16, 65536, 3)
+    for j, b in enumerate(banded["band_bits"]):
+        assert zb["quant_map"][j].max() < 2 ** b and not zb["quant_colors"][j, 2 ** b:].any()
+    assert banded["file_bytes"] < info["file_bytes"]
+    coarse = load_tree(tmp_path / "banded.npz")
+    assert torch.allclose(coarse.data[alive][:, [0, 16, 32, 48]], tree.data[alive][:, [0, 16, 32, 48]], atol=2e-2)
     compress_tree(tmp_path / "raw.npz", tmp_path / "c8.npz", bits=8)
     assert any("65536" in p for p in volrend_problems(tmp_path / "c8.npz"))
-    compress_tree(tmp_path / "raw.npz", tmp_path / "sh4.npz", sh_degree=1)
+    compress_tree(tmp_path / "raw.npz", tmp_path / "sh4.npz", sh_degree=1, band_bits=(16,))
     low = load_tree(tmp_path / "sh4.npz")
     assert low.data_format == "SH4" and volrend_problems(tmp_path / "sh4.npz") == []
     keep = [c * 16 + k for c in range(3) for k in range(4)] + [48]

@@ -36,6 +36,19 @@ class NeRFSHField(nn.Module):
         self.num_basis = sh_num_coeffs(cfg.sh_degree)
         self.sigma_head = nn.Linear(d, 1)
         self.sh_head = nn.Linear(d, 3 * self.num_basis)
+        self.reset_parameters()
+
+    def reset_parameters(self) -> None:
+        """He-uniform hidden layers and Glorot-uniform heads, zero biases (jaxnerf uses Glorot and zero biases).
+        PyTorch's default init shrinks the signal about sixfold per ReLU layer, so at depth 8 the density head
+        sees only its bias: sigma is the same tiny constant everywhere, or ReLU-dead everywhere (half the seeds),
+        and the paper preset never leaves the background-only solution."""
+        for layer in self.layers:
+            nn.init.kaiming_uniform_(layer.weight, nonlinearity="relu")
+            nn.init.zeros_(layer.bias)
+        for head in (self.sigma_head, self.sh_head):
+            nn.init.xavier_uniform_(head.weight)
+            nn.init.zeros_(head.bias)
 
     @property
     def sh_degree(self) -> int:
