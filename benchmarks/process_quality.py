@@ -2,7 +2,7 @@
 after a similarity (Umeyama) alignment, and (``--teacher-steps`` > 0) test PSNR of a hash teacher trained on the
 recovered poses against one trained on the ground-truth poses (same preset, same images, same split).
 
-    python benchmarks/process_quality.py [--size 256] [--views 32] [--teacher-steps 1000] [--work DIR]
+    python benchmarks/process_quality.py [--size 400] [--views 32] [--teacher-steps 1000] [--work DIR]
     -> one JSON object on stdout
 """
 from __future__ import annotations
@@ -24,7 +24,7 @@ from nerfbake.train.loop import git_revision
 
 def main() -> None:
     ap = argparse.ArgumentParser()
-    ap.add_argument("--size", type=int, default=256)
+    ap.add_argument("--size", type=int, default=400, help="image side; at 256 the low views register from few points")
     ap.add_argument("--views", type=int, default=32, help="training views rendered (val/test add a quarter each)")
     ap.add_argument("--spp", type=int, default=16)
     ap.add_argument("--teacher-steps", type=int, default=0, help="0 skips the teacher comparison")
@@ -84,7 +84,7 @@ def compare_teachers(work: Path, processed: Path, gt: dict, angle_x: float, size
     gt_dir = work / "gt_poses"
     gt_dir.mkdir(exist_ok=True)
     if not (gt_dir / "images").exists():
-        (gt_dir / "images").symlink_to(processed / "images")
+        (gt_dir / "images").symlink_to((processed / "images").resolve())
     focal = 0.5 * size / np.tan(0.5 * angle_x)
     frames = [{"file_path": f"images/{n}", "transform_matrix": gt[n].tolist()} for n in sorted(gt)]
     (gt_dir / "transforms.json").write_text(json.dumps({"fl_x": focal, "fl_y": focal, "cx": size / 2, "cy": size / 2,

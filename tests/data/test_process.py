@@ -15,15 +15,17 @@ from nerfbake.eval.poses import angle_deg, umeyama
 from tests.conftest import shared_data
 
 SPLITS = ("train", "val", "test")
+SIZE = 400
 
 
 @pytest.fixture(scope="module")
 def synth_photos(tmp_path_factory):
-    """48 views (256x256) of the feature-rich synthetic scene in one folder, plus one corrupt file; GT c2w by name."""
+    """48 views (400x400) of the feature-rich synthetic scene in one folder, plus one corrupt file; GT c2w by name.
+    400 pixels because at 256 the low views register from < 80 points and are off by up to 2 degrees."""
     from nerfbake.data.synth import SynthConfig, render_dataset
 
     root = tmp_path_factory.mktemp("process")
-    scene = render_dataset(SynthConfig("textured", 256, 256, views=32, spp=16, seed=0), root / "scene")
+    scene = render_dataset(SynthConfig("textured", SIZE, SIZE, views=32, spp=16, seed=0), root / "scene")
     photos = root / "photos"
     photos.mkdir()
     gt = {}
@@ -55,7 +57,7 @@ def test_synthetic_poses_match_ground_truth(synth_photos, processed):
     rec = {Path(f["file_path"]).name: np.array(f["transform_matrix"]) for f in meta["frames"]}
     names = sorted(rec)
     assert names == sorted(gt)
-    assert meta["fl_x"] == pytest.approx(0.5 * 256 / np.tan(0.5 * angle_x), rel=0.02)
+    assert meta["fl_x"] == pytest.approx(0.5 * SIZE / np.tan(0.5 * angle_x), rel=0.02)
 
     a = np.stack([rec[n][:3, 3] for n in names])
     b = np.stack([gt[n][:3, 3] for n in names])
@@ -65,11 +67,8 @@ def test_synthetic_poses_match_ground_truth(synth_photos, processed):
     assert centre_err.max() < 0.02, centre_err.max()
     rel = [angle_deg((rec[p][:3, :3].T @ rec[q][:3, :3]).T @ (gt[p][:3, :3].T @ gt[q][:3, :3]))
            for i, p in enumerate(names) for q in names[i + 1:]]
-    # Most pairs agree to a fraction of a degree (median ~0.3); the few views registered from < 80 points are off
-    # by up to ~1-2 degrees at this 256-pixel size, so the issue's "every pair within 1 degree" is not asserted.
-    assert np.median(rel) < 0.5, np.median(rel)
-    assert np.percentile(rel, 90) < 1.0, np.percentile(rel, 90)
-    assert np.max(rel) < 3.0, np.max(rel)
+    # every pair within 1 degree, the issue's bar (measured: median 0.13, max 0.40)
+    assert np.max(rel) < 1.0, np.max(rel)
 
 
 def test_output_layout_and_readers_agree(processed):
@@ -80,7 +79,7 @@ def test_output_layout_and_readers_agree(processed):
     for factor in (2, 4, 8):
         files = sorted((processed / f"images_{factor}").iterdir())
         assert len(files) == len(list((processed / "images").iterdir()))
-        assert Image.open(files[0]).size == (round(256 / factor), round(256 / factor))
+        assert Image.open(files[0]).size == (round(SIZE / factor), round(SIZE / factor))
     via_json = load_dataset(processed)
     via_colmap = load_dataset(processed, format="colmap")
     assert via_json.format == "transforms" and via_colmap.format == "colmap"
@@ -93,7 +92,7 @@ def test_output_layout_and_readers_agree(processed):
         assert ca.distortion.get("k1", 0.0) == pytest.approx(cb.distortion.get("k1", 0.0))
         np.testing.assert_allclose(ca.c2w, cb.c2w, atol=1e-9)
     half = load_dataset(processed, format="colmap", downscale=2)  # the COLMAP reader picks images_2/
-    assert half.frames[0].image_path.parent.name == "images_2" and half.frames[0].camera.width == 128
+    assert half.frames[0].image_path.parent.name == "images_2" and half.frames[0].camera.width == SIZE // 2
 
 
 def test_fern_registers_all_images(tmp_path):
@@ -185,6 +184,34 @@ def test_video_keeps_sharpest_frame_of_each_window(tmp_path):
     assert intake.names == ["frame_00001.jpg", "frame_00002.jpg", "frame_00003.jpg"]
     assert Image.open(tmp_path / "frames" / intake.names[0]).size == (128, 128)
     assert set(intake.groups.values()) == {"video"}  # one shared camera for the whole video
+
+
+def test_video_display_rotation_is_applied(tmp_path):
+    """A portrait phone clip: landscape frames plus a -90 degree display matrix, which players (and ffmpeg's
+    autorotate) show turned 90 degrees clockwise."""
+    import av
+
+    from nerfbake.data.frames import intake_video
+
+    img = np.zeros((32, 64, 3), np.uint8)
+    img[:, :32, 0] = 255  # left half red
+    img[:8, :, 1] = 255  # top rows green
+    video = tmp_path / "portrait.mp4"
+    with av.open(str(video), "w") as container:
+        stream = container.add_stream("mpeg4", rate=10)
+        stream.width, stream.height, stream.pix_fmt = 64, 32, "yuv420p"
+        stream.options = {"qscale": "2"}
+        stream.set_display_rotation(-90)
+        for _ in range(3):
+            for packet in stream.encode(av.VideoFrame.from_ndarray(img, format="rgb24")):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+    intake = intake_video(video, tmp_path / "frames", max_images=1)
+    shown = np.asarray(Image.open(tmp_path / "frames" / intake.names[0])).astype(int)
+    assert shown.shape[:2] == (64, 32)  # portrait
+    assert shown[8:24, 4:20, 0].mean() > 200 and shown[40:60, 4:20, 0].mean() < 60  # the left half is now on top
+    assert shown[:, 28:, 1].mean() > 200 and shown[:, :20, 1].mean() < 60  # the top rows are now on the right
 
 
 def test_exif_orientation_is_applied_and_unreadable_files_reported(tmp_path):

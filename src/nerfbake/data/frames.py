@@ -131,6 +131,15 @@ def video_info(path: Path) -> tuple[int, float]:
     return count, fps
 
 
+def upright(frame) -> np.ndarray:
+    """The frame as a player shows it: phones store portrait clips as landscape frames plus a display-matrix
+    rotation (``frame.rotation``: degrees counterclockwise, as FFmpeg's ``av_display_rotation_get``), which
+    ``ffmpeg`` applies on decode and PyAV does not."""
+    arr = frame.to_ndarray(format="rgb24")
+    quarter_turns = round((frame.rotation or 0) / 90) % 4
+    return np.ascontiguousarray(np.rot90(arr, quarter_turns)) if quarter_turns else arr
+
+
 def intake_video(path: Path, dest: Path, fps: float | None = None, max_images: int = 100, progress=None,
                  known: tuple[int, float] | None = None) -> Intake:
     """Keep the sharpest frame of each of up to ``max_images`` evenly spaced windows of the video.
@@ -177,7 +186,7 @@ def intake_video(path: Path, dest: Path, fps: float | None = None, max_images: i
                 if w != current:
                     flush()
                     best, current = (-1.0, None, -1), w
-                arr = frame.to_ndarray(format="rgb24")
+                arr = upright(frame)
                 s = sharpness(arr)
                 if s > best[0]:
                     best = (s, arr, i)

@@ -8,9 +8,9 @@ import torch
 def inner_outer(t_query: torch.Tensor, t: torch.Tensor, w: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """For each query interval, the weight of (t, w) wholly inside it (inner) and touching it (outer)."""
     cw = torch.cat([torch.zeros_like(w[..., :1]), torch.cumsum(w, dim=-1)], dim=-1)
-    tq = t_query.contiguous()
-    lo = torch.searchsorted(t.contiguous(), tq[..., :-1].contiguous(), right=True) - 1
-    hi = torch.searchsorted(t.contiguous(), tq[..., 1:], right=False)
+    t = t.contiguous()
+    lo = torch.searchsorted(t, t_query[..., :-1].contiguous(), right=True) - 1
+    hi = torch.searchsorted(t, t_query[..., 1:].contiguous(), right=False)
     n = t.shape[-1] - 1
     lo_c, hi_c = lo.clamp(0, n), hi.clamp(0, n)
     outer = cw.gather(-1, hi_c) - cw.gather(-1, lo_c)
