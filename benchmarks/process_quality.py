@@ -15,6 +15,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
 
 from nerfbake.data.process import ProcessConfig, process
 from nerfbake.data.synth import SynthConfig, render_dataset
@@ -41,7 +42,7 @@ def main() -> None:
         angle_x = meta["camera_angle_x"]
         for fr in meta["frames"]:
             stem = Path(fr["file_path"]).name
-            shutil.copyfile(scene / split / f"{stem}.png", photos / f"{split}_{stem}.png")
+            as_photo(scene / split / f"{stem}.png", photos / f"{split}_{stem}.png")
             gt[f"{split}_{stem}.png"] = np.array(fr["transform_matrix"])
     out = work / "processed"
     if out.exists():
@@ -73,6 +74,14 @@ def main() -> None:
     print(json.dumps(result, indent=1))
     if not args.work:
         shutil.rmtree(work, ignore_errors=True)
+
+
+def as_photo(render: Path, dest: Path) -> None:
+    """A camera has no alpha: the render's transparent sky becomes white. (Left as RGBA, readers that drop alpha
+    see a black sky that the teacher leaves part transparent, and evaluation on white scores ~10 dB.)"""
+    rgba = np.asarray(Image.open(render).convert("RGBA")).astype(np.float32) / 255.0
+    rgb = rgba[..., :3] * rgba[..., 3:] + (1.0 - rgba[..., 3:])
+    Image.fromarray(np.round(rgb * 255).astype(np.uint8)).save(dest)
 
 
 def compare_teachers(work: Path, processed: Path, gt: dict, angle_x: float, size: int, steps: int) -> dict:
