@@ -120,6 +120,5 @@ def compress_tree(tree_path: str | Path, out: str | Path, bits: int = 16, retain
     raw = Path(tree_path).stat().st_size
     return {"tree": str(path), "source": str(tree_path), "file_bytes": path.stat().st_size, "source_bytes": raw,
             "ratio": raw / path.stat().st_size, "bits": bits, "band_bits": per_basis[retain:], "retain": retain,
-            "sigma_thresh": sigma_thresh,
-            "data_format": f"SH{nb}", "min_extent": min_extent,
+            "sigma_thresh": sigma_thresh, "data_format": f"SH{nb}", "min_extent": min_extent,
             "leaves_kept": int(alive.sum()), "seconds": time.time() - start}
