@@ -70,7 +70,7 @@ def main() -> None:
                                         "mean": float(rel.mean()), "median": float(np.median(rel))},
     }
     if args.teacher_steps > 0:
-        result["teacher"] = compare_teachers(work, out, gt, angle_x, args.size, args.teacher_steps)
+        result["teacher"] = compare_teachers(work, out, gt, angle_x, args.size, args.teacher_steps, (s, r, t))
     print(json.dumps(result, indent=1))
     if not args.work:
         shutil.rmtree(work, ignore_errors=True)
@@ -84,8 +84,13 @@ def as_photo(render: Path, dest: Path) -> None:
     Image.fromarray(np.round(rgb * 255).astype(np.uint8)).save(dest)
 
 
-def compare_teachers(work: Path, processed: Path, gt: dict, angle_x: float, size: int, steps: int) -> dict:
-    """Train the same preset on recovered and on ground-truth poses (same images, same every-8th test split)."""
+def compare_teachers(work: Path, processed: Path, gt: dict, angle_x: float, size: int, steps: int,
+                     to_gt: tuple) -> dict:
+    """Train the same preset on recovered and on ground-truth poses (same images, same every-8th test split, the
+    same sparse points carried into the ground-truth frame by the similarity ``to_gt``, so both get the same
+    near plane)."""
+    from nerfbake.data.formats.ply import read_ply_points
+
     from nerfbake.teacher.evaluate import evaluate_teacher
     from nerfbake.teacher.presets import preset
     from nerfbake.teacher.train import train_teacher
@@ -96,8 +101,13 @@ def compare_teachers(work: Path, processed: Path, gt: dict, angle_x: float, size
         (gt_dir / "images").symlink_to((processed / "images").resolve())
     focal = 0.5 * size / np.tan(0.5 * angle_x)
     frames = [{"file_path": f"images/{n}", "transform_matrix": gt[n].tolist()} for n in sorted(gt)]
+    s, r, t = to_gt
+    points = s * read_ply_points(processed / "sparse_pc.ply") @ r.T + t
+    ply = [f"ply\nformat ascii 1.0\nelement vertex {len(points)}\nproperty float x\nproperty float y\nproperty float z\nend_header"]
+    (gt_dir / "sparse_pc.ply").write_text("\n".join(ply + [f"{x} {y} {z}" for x, y, z in points]) + "\n")
     (gt_dir / "transforms.json").write_text(json.dumps({"fl_x": focal, "fl_y": focal, "cx": size / 2, "cy": size / 2,
-                                                         "w": size, "h": size, "frames": frames}))
+                                                         "w": size, "h": size, "ply_file_path": "sparse_pc.ply",
+                                                         "frames": frames}))
     out = {}
     for name, data in (("ground_truth_poses", gt_dir), ("recovered_poses", processed)):
         cfg = preset("hash", "cpu-small")

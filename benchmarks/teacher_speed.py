@@ -44,7 +44,7 @@ def time_training(kind: str, ds, store, warmup: int, steps: int) -> dict:
         model.before_step(step, gen)
         batch = draw_batch(store, model, cfg, gen, DataParallel())
         loss, _, out, _ = loss_terms(model, batch, cfg.batch_rays, gen)
-        opt.zero_grad()
+        opt.zero_grad(set_to_none=False)  # as the trainer: keeps the hash gradient buffer
         loss.backward()
         opt.step()
         samples += out["num_samples"]

@@ -128,3 +128,23 @@ def test_fox_info_and_distortion(fox):
 
 def test_detect_format(lego, fern, fox):
     assert [detect_format(p) for p in (lego, fern, fox)] == ["blender", "llff", "transforms"]
+
+
+def test_ply_points_ascii_binary_and_truncated(tmp_path):
+    from nerfbake.data.errors import DatasetError
+    from nerfbake.data.formats.ply import read_ply_points
+
+    pts = np.array([[0.5, -1.0, 2.0], [3.0, 4.5, -6.0]])
+    head = "ply\nformat {}\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nproperty uchar red\nend_header\n"
+    (tmp_path / "a.ply").write_text(head.format("ascii 1.0") + "".join(f"{x} {y} {z} 7\n" for x, y, z in pts))
+    rec = np.zeros(2, dtype=[("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("red", "u1")])
+    rec["x"], rec["y"], rec["z"], rec["red"] = pts[:, 0], pts[:, 1], pts[:, 2], 7
+    (tmp_path / "b.ply").write_bytes(head.format("binary_little_endian 1.0").encode() + rec.tobytes())
+    for name in ("a.ply", "b.ply"):
+        np.testing.assert_allclose(read_ply_points(tmp_path / name), pts)
+    (tmp_path / "c.ply").write_bytes((tmp_path / "b.ply").read_bytes()[:-5])
+    with pytest.raises(DatasetError, match="c.ply.*truncated"):
+        read_ply_points(tmp_path / "c.ply")
+    (tmp_path / "d.ply").write_text("not a ply")
+    with pytest.raises(DatasetError, match="d.ply: not a PLY"):
+        read_ply_points(tmp_path / "d.ply")

@@ -37,3 +37,19 @@ def test_interlevel_loss_zero_when_proposal_bounds_final_and_distortion_prefers_
     spread = torch.full((1, 8), 0.125)
     compact = torch.tensor([[0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 0.0]])
     assert float(distortion_loss(t, compact)) < float(distortion_loss(t, spread))
+
+
+def test_proposal_spacing_is_linear_near_and_disparity_far():
+    from nerfbake.teacher.proposal import s_to_t
+
+    near = torch.tensor([0.01, 0.5])
+    s = torch.linspace(0, 1, 101).expand(2, -1)
+    t = s_to_t(s, near, 1000.0)
+    torch.testing.assert_close(t[:, 0], near)
+    torch.testing.assert_close(t[:, -1], torch.full((2,), 1000.0), rtol=1e-3, atol=0)  # float32 near g = 1
+    assert (t[:, 1:] > t[:, :-1]).all()
+    # From a small near plane about half the samples lie before t = 1, in even steps (not crowded at the camera).
+    inside = t[0] < 1
+    assert 0.45 < inside.float().mean() < 0.55
+    steps = t[0, 1:][inside[1:]] - t[0, :-1][inside[1:]]
+    torch.testing.assert_close(steps, torch.full_like(steps, float(steps.mean())), rtol=1e-3, atol=1e-5)

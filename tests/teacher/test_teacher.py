@@ -28,7 +28,15 @@ def test_render_equals_rendering_core_on_the_teachers_intervals(tiny_scene, tmp_
     origins = torch.tensor([[0.0, -4.0, 1.0]]).repeat(8, 1)
     dirs = torch.nn.functional.normalize(torch.tensor([0.0, 1.0, -0.25]) + 0.05 * torch.randn(8, 3, generator=g), dim=-1)
     with torch.no_grad():
+        if field == "hash":  # colour culling (tested below) off: the exact sum
+            culled = model.render_rays(origins, dirs, torch.ones(3))
+            model.cfg.color_weight_thresh = -1.0
         out = model.render_rays(origins, dirs, torch.ones(3))
+    if field == "hash":
+        # Each sample whose colour is skipped weighs at most the threshold, and a colour is in [0, 1].
+        bound = 1e-5 * torch.bincount(out["ray_idx"], minlength=8).float()
+        assert ((culled["rgb"] - out["rgb"]).abs().amax(-1) <= bound + 1e-6).all()
+        torch.testing.assert_close(culled["w"], out["w"])
         for r in range(8):
             sel = out["ray_idx"] == r
             t0, t1 = out["t0"][sel], out["t1"][sel]

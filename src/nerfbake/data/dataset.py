@@ -122,6 +122,16 @@ def finish_frames(
     return out
 
 
+def depth_bounds(frames: list[Frame], points: np.ndarray) -> tuple[float, float] | None:
+    """(near, far) of a scene from its sparse points (normalised frame): the 0.1 and 99.9 percentiles of their
+    depths in front of (a sample of) the cameras, as LLFF's poses_bounds. None without points in front."""
+    if len(points) == 0:
+        return None
+    d = np.concatenate([f.camera.project(points)[1] for f in frames[:: max(1, len(frames) // 20)]])
+    d = d[d > 0]
+    return (float(np.percentile(d, 0.1)), float(np.percentile(d, 99.9))) if d.size else None
+
+
 def check_downscale(downscale: float, source: Path) -> float:
     if not np.isfinite(downscale) or downscale < 1:
         raise DatasetError(f"{source}: --downscale must be a number >= 1, got {downscale}")

@@ -61,4 +61,8 @@ class HashSHField(nn.Module):
     def forward(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """sigma (N,), sh coefficients (N, 3*B)."""
         sigma, feat = self.density_and_features(x)
-        return sigma, self.color_net(feat)
+        return sigma, self.sh_coeffs(feat)
+
+    def sh_coeffs(self, feat: torch.Tensor) -> torch.Tensor:
+        """SH coefficients (N, 3*B) from the geometry features of :meth:`density_and_features`."""
+        return self.color_net(feat)

@@ -1,7 +1,7 @@
 """Proposal-network sampling (mip-NeRF 360 / Zip-NeRF) for unbounded scenes.
 
-Rays are parameterised in normalised "s" distance with g(t) = 1/t spacing (fine near the camera, coarse far
-away, matching the contraction). A small density-only hash field proposes weights on ``proposal_samples``
+Rays are parameterised in normalised "s" distance with the piecewise linear/disparity spacing of
+:func:`spacing` (even steps near the scene, coarse far away, matching the contraction). A small density-only hash field proposes weights on ``proposal_samples``
 intervals; the final field is evaluated on ``final_samples`` intervals drawn from those weights. Training
 adds the interlevel loss (proposal bounds final weights) and the distortion loss.
 """
@@ -46,10 +46,22 @@ class ProposalDensity(nn.Module):
         return trunc_exp(self.net(self.grid(u))[:, 0] - 1.0)
 
 
+def spacing(t: torch.Tensor) -> torch.Tensor:
+    """The mip-NeRF 360 / Zip-NeRF spacing g(t): linear up to t = 1 (the scale of the normalised scene, cameras
+    inside [-1, 1]^3), disparity beyond, mapping [0, inf) to [0, 1). Pure disparity from a small near plane
+    would put half of all samples within twice the near distance of the camera and about one near the object."""
+    return torch.where(t < 1, 0.5 * t, 1 - 0.5 / t.clamp_min(1e-12))
+
+
+def spacing_inverse(u: torch.Tensor) -> torch.Tensor:
+    return torch.where(u < 0.5, 2 * u, 0.5 / (1 - u).clamp_min(1e-12))
+
+
 def s_to_t(s: torch.Tensor, near: torch.Tensor, far: float) -> torch.Tensor:
-    """Inverse of s = (1/t - 1/near) / (1/far - 1/near)."""
-    gn, gf = 1.0 / near[..., None], 1.0 / far
-    return 1.0 / (s * gf + (1 - s) * gn)
+    """Ray distance t of normalised distance s in [0, 1], where s = (g(t) - g(near)) / (g(far) - g(near))."""
+    gn = spacing(near)[..., None]
+    gf = spacing(torch.as_tensor(far, dtype=near.dtype, device=near.device))
+    return spacing_inverse(gn + s * (gf - gn))
 
 
 class ProposalSampler(nn.Module):

@@ -20,11 +20,13 @@ class OccupancyGrid(nn.Module):
     """A G^3 grid over a box holding an EMA of the field's density (instant-ngp's density grid).
 
     Cells whose density could give an alpha of at least ``alpha_thresh`` over one marching step stay
-    occupied; every update re-evaluates a random fraction of cells (all of them on the first update).
+    occupied. The first update evaluates every cell, later ones a random ``fraction`` of them; cells not
+    evaluated just decay. (On lego neither a sixteenth nor nerfacc's "every occupied cell plus a uniform
+    share" trained faster than an eighth: the first kept fewer cells fresh, the second kept more occupied.)
     """
 
     def __init__(self, box_min, box_max, resolution: int = 128, dt: float = 0.01, alpha_thresh: float = 0.01,
-                 decay: float = 0.95, fraction: float = 0.125):
+                 decay: float = 0.95, fraction: float = 1 / 8):
         super().__init__()
         self.resolution, self.dt, self.decay, self.fraction = resolution, dt, decay, fraction
         self.sigma_thresh = -math.log(1.0 - alpha_thresh) / dt
@@ -32,6 +34,14 @@ class OccupancyGrid(nn.Module):
         self.register_buffer("box_max", torch.as_tensor(box_max, dtype=torch.float32))
         self.register_buffer("density", torch.full((resolution,) * 3, -1.0))  # -1: never evaluated
         self.register_buffer("occupied", torch.ones((resolution,) * 3, dtype=torch.bool))
+
+    def cells_to_update(self, generator: torch.Generator) -> torch.Tensor:
+        """Sorted, unique flat indices (CPU) of the cells the next update evaluates (random draws with repeats
+        removed: a full permutation of 2M cells costs more than the draw)."""
+        n = self.density.numel()
+        if bool((self.density < 0).all()):
+            return torch.arange(n)
+        return torch.unique(torch.randint(0, n, (int(n * self.fraction),), generator=generator))
 
     def cell_centres(self, flat_idx: torch.Tensor, jitter: torch.Tensor) -> torch.Tensor:
         g = self.resolution
@@ -41,11 +51,7 @@ class OccupancyGrid(nn.Module):
     @torch.no_grad()
     def update(self, density_fn, generator: torch.Generator, chunk: int = 1 << 18) -> None:
         flat = self.density.view(-1)
-        n = flat.numel()
-        if (flat < 0).all():
-            idx = torch.arange(n)
-        else:
-            idx = torch.randperm(n, generator=generator)[: int(n * self.fraction)]
+        idx = self.cells_to_update(generator)
         jitter = torch.rand(idx.numel(), 3, generator=generator)  # drawn on the CPU: the same on every device
         dev = flat.device
         idx, jitter = idx.to(dev), jitter.to(dev)

@@ -11,7 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from nerfbake.data.cameras import Camera, opencv_to_opengl
-from nerfbake.data.dataset import Dataset, Frame, check_downscale, every_nth_split, finish_frames
+from nerfbake.data.dataset import Dataset, Frame, check_downscale, depth_bounds, every_nth_split, finish_frames
 from nerfbake.data.errors import DatasetError
 from nerfbake.data.formats.llff import pick_image_folder
 from nerfbake.data.normalization import choose as choose_normalization
@@ -85,13 +85,8 @@ def read_colmap(root: Path, downscale: float = 1.0, normalize: str = "object-cen
         c2ws.append(c2w)
     norm = choose_normalization(normalize, np.stack(c2ws), root)
     frames = finish_frames(frames, norm, load_factor)
-    bounds = None
-    if rec.num_points3D() > 0:
-        pts = np.stack([p.xyz for p in rec.points3D.values()])
-        d = np.concatenate([f.camera.project(norm.apply_to_points(pts))[1] for f in frames[:: max(1, len(frames) // 20)]])
-        d = d[d > 0]
-        if d.size:
-            bounds = (float(np.percentile(d, 0.1)), float(np.percentile(d, 99.9)))
+    pts = np.stack([p.xyz for p in rec.points3D.values()]) if rec.num_points3D() > 0 else np.zeros((0, 3))
+    bounds = depth_bounds(frames, norm.apply_to_points(pts))
     return Dataset("colmap", root, frames, every_nth_split([f.name for f in frames]), norm, bounds=bounds,
                    background=None, downscale=downscale, extras={"sparse_dir": str(sparse)})
 

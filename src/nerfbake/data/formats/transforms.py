@@ -3,6 +3,9 @@
 Intrinsics: fl_x/fl_y (or camera_angle_x/y), cx, cy, w, h, distortion k1 k2 k3 p1 p2; per-frame values
 override the top-level ones. Splits: ``train_filenames``/``val_filenames``/``test_filenames`` when present,
 otherwise every 8th of the sorted names. ``aabb_scale`` is kept in the extras. Object-centric normalisation.
+Near/far bounds come from the sparse point cloud of ``ply_file_path`` (nerfstudio's key; ``nerfbake process``
+writes it) when there is one: the teacher's near plane then keeps it from explaining each view with floaters
+just in front of its camera.
 """
 from __future__ import annotations
 
@@ -12,8 +15,9 @@ from pathlib import Path
 import numpy as np
 
 from nerfbake.data.cameras import CAMERA_MODELS, Camera
-from nerfbake.data.dataset import Dataset, Frame, check_downscale, every_nth_split, finish_frames
+from nerfbake.data.dataset import Dataset, Frame, check_downscale, depth_bounds, every_nth_split, finish_frames
 from nerfbake.data.errors import DatasetError
+from nerfbake.data.formats.ply import read_ply_points
 from nerfbake.data.formats.jsonio import frames_of, pose_of, read_json, resolve_image
 from nerfbake.data.images import image_size
 from nerfbake.data.normalization import choose as choose_normalization
@@ -83,7 +87,10 @@ def read_transforms(root: Path, downscale: float = 1.0, normalize: str = "object
     frames = finish_frames(frames, norm, downscale)
     splits = _explicit_splits(meta, frames, path) or every_nth_split([f.name for f in frames])
     extras = {k: meta[k] for k in ("aabb_scale", "scale", "offset") if k in meta}
-    return Dataset("transforms", root, frames, splits, norm, bounds=None, background=None, downscale=downscale, extras=extras)
+    bounds = None
+    if meta.get("ply_file_path") and (root / meta["ply_file_path"]).is_file():
+        bounds = depth_bounds(frames, norm.apply_to_points(read_ply_points(root / meta["ply_file_path"])))
+    return Dataset("transforms", root, frames, splits, norm, bounds=bounds, background=None, downscale=downscale, extras=extras)
 
 
 def _explicit_splits(meta: dict, frames: list[Frame], path: Path) -> dict[str, list[int]] | None:
