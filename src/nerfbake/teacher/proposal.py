@@ -29,6 +29,10 @@ class ProposalConfig:
     far: float = 1000.0
     interlevel_weight: float = 1.0
     distortion_weight: float = 0.002
+    # "Floaters No More" (Philip & Deschaintre 2023): a sample at distance t from the camera gets its gradients
+    # scaled by min(1, (t / d)^2). Space just in front of a camera is seen by that camera alone, so without this
+    # the field explains each training view with a screen there (held-out lego: 8.7 dB). 0 turns it off.
+    grad_scale_distance: float = 1.0
 
 
 class ProposalDensity(nn.Module):
@@ -44,6 +48,26 @@ class ProposalDensity(nn.Module):
     def forward(self, x: torch.Tensor) -> torch.Tensor:
         u = (contract((x - self.box_centre) / self.box_half) + 2.0) / 4.0
         return trunc_exp(self.net(self.grid(u))[:, 0] - 1.0)
+
+
+class _ScaleGradient(torch.autograd.Function):
+    @staticmethod
+    def forward(ctx, x, scale):
+        ctx.save_for_backward(scale)
+        return x.view_as(x)
+
+    @staticmethod
+    def backward(ctx, grad):
+        (scale,) = ctx.saved_tensors
+        return grad * scale, None
+
+
+def scale_gradient_by_distance(x: torch.Tensor, t: torch.Tensor, distance: float) -> torch.Tensor:
+    """``x`` unchanged, its gradient scaled by min(1, (t / distance)^2); ``t`` matches x's leading shape."""
+    if distance <= 0 or not x.requires_grad:
+        return x
+    scale = (t.detach() / distance).square().clamp_max(1.0)
+    return _ScaleGradient.apply(x, scale.reshape(scale.shape + (1,) * (x.dim() - scale.dim())))
 
 
 def spacing(t: torch.Tensor) -> torch.Tensor:
