@@ -43,7 +43,7 @@ def preset(field_kind: str, name: str) -> TeacherTrainConfig:
         if field_kind == "hash":
             # Checkpoints (~200 MB with Adam's moments) and full validation renders every 1000/2000 steps: together
             # ~20 s of a 20-minute budget at 500/1000.
-            return TeacherTrainConfig(field="hash", preset=name, steps=8000, batch_rays=4096, lr=1e-2, lr_schedule="step",
+            return TeacherTrainConfig(field="hash", preset=name, steps=9000, batch_rays=4096, lr=1e-2, lr_schedule="step",
                                       checkpoint_every=1000, val_every=2000,
                                       hash=HashTeacherConfig(HashSHConfig(levels=16, log2_table=19, max_res=1024, sh_degree=3)))
         return TeacherTrainConfig(field="nerf-sh", preset=name, steps=2000, batch_rays=512, lr=5e-4, lr_final=5e-5,
