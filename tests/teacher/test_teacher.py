@@ -206,17 +206,17 @@ def test_paper_size_nerf_sh_starts_with_a_live_input_dependent_density(seed):
 def test_gradients_near_the_camera_are_scaled_down_by_distance_squared():
     """Floaters No More: values pass unchanged; the gradient of a sample at distance t is scaled by
     min(1, (t / d)^2), so the space just in front of each camera (seen by it alone) learns slower."""
-    from nerfbake.teacher.proposal import scale_gradient_by_distance
+    from nerfbake.teacher.proposal import scale_gradients_by_distance
 
     t = torch.tensor([0.1, 0.5, 1.0, 3.0])
     x = torch.randn(4, 3, requires_grad=True)
     upstream = torch.randn(4, 3)
-    y = scale_gradient_by_distance(x, t, 1.0)
+    (y,) = scale_gradients_by_distance(t, 1.0, x)
     assert torch.equal(y, x)
     (y * upstream).sum().backward()
     expected = upstream * torch.tensor([0.01, 0.25, 1.0, 1.0])[:, None]
     assert torch.allclose(x.grad, expected)
     sigma = torch.rand(4, requires_grad=True)
-    scale_gradient_by_distance(sigma, t, 2.0).sum().backward()
+    scale_gradients_by_distance(t, 2.0, sigma)[0].sum().backward()
     assert torch.allclose(sigma.grad, torch.tensor([0.0025, 0.0625, 0.25, 1.0]))
-    assert scale_gradient_by_distance(x, t, 0.0) is x
+    assert scale_gradients_by_distance(t, 0.0, x)[0] is x

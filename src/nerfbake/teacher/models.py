@@ -14,7 +14,7 @@ from nerfbake.render.packed import packed_composite, packed_weights
 from nerfbake.render.quadrature import composite, weights_from_density
 from nerfbake.render.sampling import sample_pdf, stratified_t, uniform_t
 from nerfbake.render.sh import eval_sh_color
-from nerfbake.teacher.proposal import ProposalConfig, ProposalSampler, scale_gradient_by_distance
+from nerfbake.teacher.proposal import ProposalConfig, ProposalSampler, scale_gradients_by_distance
 from nerfbake.teacher.sampling import OccupancyGrid, ray_box
 
 
@@ -148,8 +148,7 @@ class HashTeacher(nn.Module):
         pts = origins[:, None] + mid[..., None] * dirs[:, None]
         k = mid.shape[1]
         sigma, rgb = _shade(self.field(pts.reshape(-1, 3)), dirs[:, None].expand(-1, k, -1).reshape(-1, 3))
-        dist, scale_at = mid.reshape(-1), self.cfg.proposal.grad_scale_distance
-        sigma, rgb = scale_gradient_by_distance(sigma, dist, scale_at), scale_gradient_by_distance(rgb, dist, scale_at)
+        sigma, rgb = scale_gradients_by_distance(mid.reshape(-1), self.cfg.proposal.grad_scale_distance, sigma, rgb)
         w, _ = weights_from_density(sigma.view(r, k), t)
         out = composite(w, rgb.view(r, k, 3), background, t)
         out.update(ray_idx=torch.arange(r, device=origins.device).repeat_interleave(k), t0=t[:, :-1].reshape(-1), t1=t[:, 1:].reshape(-1),

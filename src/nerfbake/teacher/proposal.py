@@ -62,12 +62,14 @@ class _ScaleGradient(torch.autograd.Function):
         return grad * scale, None
 
 
-def scale_gradient_by_distance(x: torch.Tensor, t: torch.Tensor, distance: float) -> torch.Tensor:
-    """``x`` unchanged, its gradient scaled by min(1, (t / distance)^2); ``t`` matches x's leading shape."""
-    if distance <= 0 or not x.requires_grad:
-        return x
+def scale_gradients_by_distance(t: torch.Tensor, distance: float, *xs: torch.Tensor) -> tuple[torch.Tensor, ...]:
+    """Each of ``xs`` unchanged, its gradient scaled by min(1, (t / distance)^2); ``t`` matches their leading
+    shape. The scale is computed once for all of them (a sample's density and colour share it)."""
+    if distance <= 0:
+        return xs
     scale = (t.detach() / distance).square().clamp_max(1.0)
-    return _ScaleGradient.apply(x, scale.reshape(scale.shape + (1,) * (x.dim() - scale.dim())))
+    return tuple(_ScaleGradient.apply(x, scale.reshape(scale.shape + (1,) * (x.dim() - scale.dim())))
+                 if x.requires_grad else x for x in xs)
 
 
 def spacing(t: torch.Tensor) -> torch.Tensor:

@@ -31,7 +31,7 @@ def scene_box(ds: Dataset) -> SceneBox:
     """The region the teacher models. Blender scenes live in [-1.5, 1.5]^3 between near 2 and far 6 (unless their
     transforms give ``aabb``/``near``/``far``, as nerfbake's indoor synthetic scenes do); other
     captures are normalised so cameras lie in [-1, 1]^3 and the teacher covers [-1, 1]^3 at full resolution
-    with the contraction taking in everything beyond. Their near plane is 0.9 x the nearest sparse-point depth
+    with the contraction taking in everything beyond. Their near plane is 0.9 x the near bound of the sparse points
     (LLFF's rule) where the dataset has one: space in front of it is seen by one camera alone, and a teacher
     left to use it explains each view with a screen there (lego as an opaque capture, 1000 steps: 8.7 dB held-out
     with near 0.01, 16.5 with near at 0.45 normalised)."""
