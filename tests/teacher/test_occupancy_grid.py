@@ -25,3 +25,26 @@ def test_update_evaluates_everything_first_then_a_random_share_and_prunes_to_the
         grid.update(ball_density, gen)
     assert grid.occupied[16, 16, 16] and not grid.occupied[0, 0, 0]
     assert grid.occupancy_fraction < 0.05
+
+
+
+def test_final_refresh_finds_thin_structures_the_running_estimate_lets_decay():
+    """A sheet 1/8 of a cell thick beside a dense ball: one jittered point per update rarely lands in the sheet and
+    the running estimate decays between hits, so at any moment it holds many of the sheet's cells empty; the
+    end-of-training refresh (16 points per cell) marks them, and nothing in the empty space around."""
+    res, cell = 16, 2.0 / 16
+    lo = -1.0 + 5 * cell + 0.4 * cell  # inside the sixth layer of cells along x, away from its centre
+
+    def density(x):
+        sheet = (x[:, 0] > lo) & (x[:, 0] < lo + cell / 8)
+        return torch.where(sheet, 10.0, 0.0) + ball_density(x - 0.5) * 10  # the ball keeps the mean density high
+
+    gen = torch.Generator().manual_seed(0)
+    grid = OccupancyGrid([-1.0] * 3, [1.0] * 3, resolution=res, dt=0.01, alpha_thresh=0.01)
+    for _ in range(200):
+        grid.update(density, gen)
+    held = grid.occupied[5].float().mean()
+    assert held < 0.7  # the running estimate holds a large share of the sheet's cells empty
+    grid.refresh(density, gen)
+    assert grid.occupied[5].float().mean() > max(0.8, held)  # P(16 points all miss a 1/8 slab) = (7/8)^16 ~ 0.12
+    assert not grid.occupied[:5].any() and not grid.occupied[6:9].any()

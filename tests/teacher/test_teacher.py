@@ -3,6 +3,7 @@ import json
 import subprocess
 import sys
 from dataclasses import replace
+from pathlib import Path
 
 import pytest
 import torch
@@ -220,3 +221,50 @@ def test_gradients_near_the_camera_are_scaled_down_by_distance_squared():
     scale_gradients_by_distance(t, 2.0, sigma)[0].sum().backward()
     assert torch.allclose(sigma.grad, torch.tensor([0.0025, 0.0625, 0.25, 1.0]))
     assert scale_gradients_by_distance(t, 0.0, x)[0] is x
+
+
+def test_object_centred_captures_get_the_points_box_and_a_learned_background():
+    """Cameras around the sparse points and outside their box: a bounded teacher over that box whose rays that
+    miss it end on its own directional background (not the colour passed in), which training can change.
+    Cameras on one side (forward-facing), or a camera inside the box, keep the contracted teacher."""
+    import math
+
+    import numpy as np
+
+    from nerfbake.data.cameras import Camera
+    from nerfbake.data.dataset import Dataset, Frame, object_box
+    from nerfbake.data.synth import look_at
+    from nerfbake.teacher.models import HashTeacher
+    from nerfbake.teacher.train import scene_box
+
+    rng = np.random.default_rng(0)
+    floor = rng.uniform(-0.5, 0.5, (500, 3)) * [1.0, 1.0, 0.02]
+    top = np.array([[0.0, 0.0, 0.2], [0.01, 0.0, 0.19], [0.0, 0.01, 0.19]])  # an object's top: 3 of 505 points
+    stray = np.array([[0.0, 0.0, 5.0], [-3.0, 2.0, 0.0]])  # mismatches far away
+    points = np.concatenate([floor, top, stray])
+
+    def frames(eyes):
+        return [Frame(f"{i}.png", None, Camera(look_at(e, [0, 0, 0]), 8, 8, 8.0, 8.0, 4.0, 4.0)) for i, e in enumerate(eyes)]
+
+    around = frames([[math.cos(a), math.sin(a), 0.5] for a in np.linspace(0, 2 * math.pi, 12, endpoint=False)])
+    lo, hi = object_box(around, points)
+    inner = np.concatenate([floor, top])
+    size = inner.max(0) - inner.min(0)
+    np.testing.assert_allclose(lo, inner.min(0) - 0.05 * size, atol=1e-9)  # stray points left out, the top kept
+    np.testing.assert_allclose(hi, inner.max(0) + 0.05 * size, atol=1e-9)
+    assert object_box(frames([[0.2 * i, 0.0, 3.0] for i in range(-3, 4)]), points) is None  # forward-facing
+    assert object_box(around + frames([[0.0, 0.0, 0.05]]), points) is None  # a camera inside the box
+    assert object_box(around, None) is None
+
+    ds = Dataset("transforms", Path("."), around, {"train": list(range(12))}, points=points)
+    box = scene_box(ds)
+    assert box.learned_background and not box.contracted
+    teacher = HashTeacher(tiny_config("hash", steps=1).hash, box)
+    origins = torch.tensor([[2.0, 0.0, 2.0]]).repeat(4, 1)
+    dirs = torch.nn.functional.normalize(torch.tensor([[0.0, 1.0, 1.0], [0.0, 0.0, 1.0], [1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]), dim=-1)
+    out = teacher.render_rays(origins, dirs, torch.ones(3))  # every ray misses the box
+    assert out["num_samples"] == 0
+    torch.testing.assert_close(out["rgb"], teacher.background(dirs))
+    assert not torch.allclose(out["rgb"], torch.ones(4, 3))
+    out["rgb"].sum().backward()
+    assert teacher.background.net[0].weight.grad.abs().max() > 0

@@ -9,6 +9,7 @@ from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from nerfbake.data.cameras import Camera
 from nerfbake.data.errors import DatasetError
@@ -40,6 +41,7 @@ class Dataset:
     background: tuple[float, float, float] | None = None  # composite RGBA over this; None = images are opaque
     downscale: float = 1.0
     extras: dict = field(default_factory=dict)  # format-specific facts worth reporting (aabb_scale, ...)
+    points: np.ndarray | None = None  # sparse SfM points (N, 3) in the normalised frame, where the format has them
 
     def __post_init__(self) -> None:
         if not self.frames:
@@ -130,6 +132,40 @@ def depth_bounds(frames: list[Frame], points: np.ndarray) -> tuple[float, float]
     d = np.concatenate([f.camera.project(points)[1] for f in frames[:: max(1, len(frames) // 20)]])
     d = d[d > 0]
     return (float(np.percentile(d, 0.1)), float(np.percentile(d, 99.9))) if d.size else None
+
+
+def object_box(frames: list[Frame], points: np.ndarray | None, pad: float = 0.05,
+               max_resultant: float = 0.9) -> tuple[np.ndarray, np.ndarray] | None:
+    """The box of an object-centred capture, or None where the capture is not one.
+
+    Object-centred: the box of the sparse points holds no camera, and the cameras surround it: the unit vectors
+    from its centre to them do not all point one way (their mean is shorter than ``max_resultant``; a
+    forward-facing capture such as LLFF's is near 1, a hemisphere of views around an object ~0.6). Such a scene
+    is better modelled inside that box, with rays that leave it ending on a learned background, than contracted
+    to infinity (see ``scene_box``).
+
+    The box: the extent of the points that have neighbours (the mean distance to their 4 nearest is at most 10x
+    the median of that over all points: stray matches far away are left out, but the top of an object, whose
+    points are rare next to a textured floor's, is kept), padded by ``pad`` of its size. Cutting geometry off is
+    worse than a box with empty space, which the occupancy grid skips."""
+    if points is None or len(points) < 50:
+        return None
+    dist, _ = cKDTree(points).query(points, k=5)  # the first neighbour is the point itself
+    spread = dist[:, 1:].mean(axis=1)
+    kept = points[spread <= 10 * np.median(spread)]
+    lo, hi = kept.min(axis=0), kept.max(axis=0)
+    size = hi - lo
+    if not (size > 0).all():
+        return None
+    lo, hi = lo - pad * size, hi + pad * size
+    centres = np.stack([f.camera.c2w[:3, 3] for f in frames])
+    if ((centres > lo) & (centres < hi)).all(axis=1).any():
+        return None
+    to_cams = centres - (lo + hi) / 2
+    to_cams /= np.linalg.norm(to_cams, axis=1, keepdims=True)
+    if np.linalg.norm(to_cams.mean(0)) >= max_resultant:
+        return None
+    return lo, hi
 
 
 def check_downscale(downscale: float, source: Path) -> float:

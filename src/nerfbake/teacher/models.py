@@ -13,7 +13,7 @@ from nerfbake.kernels.march import march_rays
 from nerfbake.render.packed import packed_composite, packed_weights
 from nerfbake.render.quadrature import composite, weights_from_density
 from nerfbake.render.sampling import sample_pdf, stratified_t, uniform_t
-from nerfbake.render.sh import eval_sh_color
+from nerfbake.render.sh import eval_sh_color, sh_basis, sh_num_coeffs
 from nerfbake.teacher.proposal import ProposalConfig, ProposalSampler, scale_gradients_by_distance
 from nerfbake.teacher.sampling import OccupancyGrid, ray_box
 
@@ -27,6 +27,24 @@ class SceneBox:
     near: float = 0.0
     far: float = 1e10
     contracted: bool = False
+    # Rays leaving the box end on a colour the teacher learns from the ray direction (object-centred captures of
+    # opaque photos, whose box holds the object and its surroundings but not the far background).
+    learned_background: bool = False
+
+
+class DirectionalBackground(nn.Module):
+    """Colour at infinity as a function of direction alone: degree-4 SH basis -> 32 ReLU units -> sigmoid RGB. A
+    distant background looks the same from every camera, so a direction is all it needs; anything nearer
+    belongs in the box."""
+
+    def __init__(self, degree: int = 4, hidden: int = 32):
+        super().__init__()
+        self.degree = degree
+        self.net = nn.Sequential(nn.Linear(sh_num_coeffs(degree), hidden), nn.ReLU(), nn.Linear(hidden, 3))
+
+    def forward(self, dirs: torch.Tensor) -> torch.Tensor:
+        unit = dirs / dirs.norm(dim=-1, keepdim=True).clamp_min(1e-12)
+        return torch.sigmoid(self.net(sh_basis(self.degree, unit)))
 
 
 @dataclass
@@ -90,6 +108,7 @@ class HashTeacher(nn.Module):
             self.proposal = ProposalSampler(cfg.proposal, (lo + hi) / 2, (hi - lo) / 2)
         else:
             self.grid = OccupancyGrid(box.box_min, box.box_max, cfg.grid_resolution, self.dt, cfg.alpha_thresh)
+        self.background = DirectionalBackground() if box.learned_background else None
 
     @property
     def sh_degree(self) -> int:
@@ -111,6 +130,11 @@ class HashTeacher(nn.Module):
         if not self.box.contracted and step % self.cfg.grid_update_every == 0:
             self.grid.update(self.field.density, generator)
 
+    def after_training(self, generator: torch.Generator) -> None:
+        """Once, when the last step is done: the occupancy grid the saved teacher renders with (see refresh)."""
+        if not self.box.contracted:
+            self.grid.refresh(self.field.density, generator)
+
     @property
     def noise_dims(self) -> int:
         """Uniform random numbers one training ray consumes (drawn by the trainer for the whole global batch)."""
@@ -118,7 +142,10 @@ class HashTeacher(nn.Module):
 
     def render_rays(self, origins, dirs, background=None, noise: torch.Tensor | None = None) -> dict:
         """``noise`` (R, noise_dims) in [0, 1) makes this a training render (jittered samples); None renders
-        deterministically with the finer evaluation step."""
+        deterministically with the finer evaluation step. A teacher with a learned background uses it in place
+        of ``background``."""
+        if self.background is not None:
+            background = self.background(dirs)
         if self.box.contracted:
             return self._render_proposal(origins, dirs, background, noise)
         n = origins.shape[0]
@@ -193,6 +220,9 @@ class NeRFSHTeacher(nn.Module):
         return torch.where(((x >= lo) & (x <= hi)).all(-1), sigma, torch.zeros_like(sigma))
 
     def before_step(self, step, generator) -> None:
+        pass
+
+    def after_training(self, generator) -> None:
         pass
 
     def _near_far(self, origins, dirs):

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from nerfbake.data.dataset import Dataset
+from nerfbake.data.dataset import Dataset, object_box
 from nerfbake.data.formats import load_dataset
 from nerfbake.data.pixels import PixelStore
 from nerfbake.progress import console, progress_bar
@@ -29,17 +29,27 @@ CONFIG = "config.json"
 
 def scene_box(ds: Dataset) -> SceneBox:
     """The region the teacher models. Blender scenes live in [-1.5, 1.5]^3 between near 2 and far 6 (unless their
-    transforms give ``aabb``/``near``/``far``, as nerfbake's indoor synthetic scenes do); other
-    captures are normalised so cameras lie in [-1, 1]^3 and the teacher covers [-1, 1]^3 at full resolution
-    with the contraction taking in everything beyond. Their near plane is 0.9 x the near bound of the sparse points
-    (LLFF's rule) where the dataset has one: space in front of it is seen by one camera alone, and a teacher
-    left to use it explains each view with a screen there (lego as an opaque capture, 1000 steps: 8.7 dB held-out
-    with near 0.01, 16.5 with near at 0.45 normalised)."""
+    transforms give ``aabb``/``near``/``far``, as nerfbake's indoor synthetic scenes do). Other captures are
+    normalised so cameras lie in [-1, 1]^3.
+
+    * Object-centred captures with sparse points (cameras around, outside the points' box: ``object_box``) are
+      modelled inside that box with the occupancy grid, like Blender scenes, and rays leaving it end on a learned
+      directional background. Contracted, such a capture is explained by screens in front of each camera, which
+      no other camera sees (the synthetic textured scene, 32 views, 1000 steps: 11 dB on held-out views).
+    * Everything else is covered at full resolution in [-1, 1]^3, with the contraction taking in everything beyond.
+
+    The near plane is 0.9 x the near bound of the sparse points (LLFF's rule) where the dataset has one: space in
+    front of it is seen by one camera alone, and a contracted teacher left to use it explains each view with a
+    screen there (lego as an opaque capture, 1000 steps: 8.7 dB held-out with near 0.01, 16.5 with near at 0.45
+    normalised)."""
     if ds.format == "blender":
         near, far = ds.bounds or (2.0, 6.0)
         lo, hi = ds.extras.get("aabb", ([-1.5] * 3, [1.5] * 3))
         return SceneBox(list(lo), list(hi), near, far)
     near = 0.01 if ds.bounds is None else max(0.01, 0.9 * ds.bounds[0])
+    box = object_box([ds.frames[i] for i in ds.split("train")] if "train" in ds.splits else ds.frames, ds.points)
+    if box is not None:
+        return SceneBox([float(v) for v in box[0]], [float(v) for v in box[1]], near, 1e10, learned_background=True)
     return SceneBox([-1.0] * 3, [1.0] * 3, near, 1e10, contracted=True)
 
 
@@ -221,5 +231,9 @@ def train_teacher(data: str | Path, out: str | Path, cfg: TeacherTrainConfig, re
                     save_checkpoint(ckpt_path, state_dict(step))
         finally:
             runlog.close()
+    if start < cfg.steps <= step:  # this call finished the run
+        if dp.is_main and hasattr(model, "grid"):
+            console.print("final occupancy grid: 16 points per cell (~20 s on 2 cores)")
+        model.after_training(step_generator(cfg.seed, cfg.steps))
     finish_run(dp, ckpt_path, state_dict, out / CONFIG, meta, step, cfg.steps)
     return out

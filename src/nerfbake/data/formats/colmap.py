@@ -86,9 +86,10 @@ def read_colmap(root: Path, downscale: float = 1.0, normalize: str = "object-cen
     norm = choose_normalization(normalize, np.stack(c2ws), root)
     frames = finish_frames(frames, norm, load_factor)
     pts = np.stack([p.xyz for p in rec.points3D.values()]) if rec.num_points3D() > 0 else np.zeros((0, 3))
-    bounds = depth_bounds(frames, norm.apply_to_points(pts))
+    pts = norm.apply_to_points(pts)
+    bounds = depth_bounds(frames, pts)
     return Dataset("colmap", root, frames, every_nth_split([f.name for f in frames]), norm, bounds=bounds,
-                   background=None, downscale=downscale, extras={"sparse_dir": str(sparse)})
+                   background=None, downscale=downscale, extras={"sparse_dir": str(sparse)}, points=pts)
 
 
 def read_points3d_binary(path: Path) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:

@@ -87,10 +87,12 @@ def read_transforms(root: Path, downscale: float = 1.0, normalize: str = "object
     frames = finish_frames(frames, norm, downscale)
     splits = _explicit_splits(meta, frames, path) or every_nth_split([f.name for f in frames])
     extras = {k: meta[k] for k in ("aabb_scale", "scale", "offset") if k in meta}
-    bounds = None
+    bounds = points = None
     if meta.get("ply_file_path") and (root / meta["ply_file_path"]).is_file():
-        bounds = depth_bounds(frames, norm.apply_to_points(read_ply_points(root / meta["ply_file_path"])))
-    return Dataset("transforms", root, frames, splits, norm, bounds=bounds, background=None, downscale=downscale, extras=extras)
+        points = norm.apply_to_points(read_ply_points(root / meta["ply_file_path"]))
+        bounds = depth_bounds(frames, points)
+    return Dataset("transforms", root, frames, splits, norm, bounds=bounds, background=None, downscale=downscale,
+                   extras=extras, points=points)
 
 
 def _explicit_splits(meta: dict, frames: list[Frame], path: Path) -> dict[str, list[int]] | None:
