@@ -2,7 +2,8 @@
 after a similarity (Umeyama) alignment, and (``--teacher-steps`` > 0) test PSNR of a hash teacher trained on the
 recovered poses against one trained on the ground-truth poses (same preset, same images, same split).
 
-    python benchmarks/process_quality.py [--size 400] [--views 32] [--teacher-steps 1000] [--work DIR]
+    python benchmarks/process_quality.py [--size 400] [--views 32] [--spp 16] [--teacher-steps 1000] [--work DIR]
+                                         [--camera-model SIMPLE_RADIAL] [--plain-sift]
     -> one JSON object on stdout
 """
 from __future__ import annotations
@@ -29,6 +30,8 @@ def main() -> None:
     ap.add_argument("--views", type=int, default=32, help="training views rendered (val/test add a quarter each)")
     ap.add_argument("--spp", type=int, default=16)
     ap.add_argument("--teacher-steps", type=int, default=0, help="0 skips the teacher comparison")
+    ap.add_argument("--camera-model", default="SIMPLE_RADIAL", help="COLMAP camera model for nerfbake process")
+    ap.add_argument("--plain-sift", action="store_true", help="SIFT without affine shapes and domain-size pooling")
     ap.add_argument("--work", help="keep everything here (default: a temporary folder, removed)")
     args = ap.parse_args()
     work = Path(args.work or tempfile.mkdtemp(prefix="process-quality-"))
@@ -48,7 +51,8 @@ def main() -> None:
     if out.exists():
         shutil.rmtree(out)
     t0 = time.perf_counter()
-    report = process(ProcessConfig(out=out, images=photos), log=lambda line: None)
+    report = process(ProcessConfig(out=out, images=photos, camera_model=args.camera_model,
+                                   affine_dsp=not args.plain_sift), log=lambda line: None)
     seconds = time.perf_counter() - t0
     meta = json.loads((out / "transforms.json").read_text())
     rec = {Path(f["file_path"]).name: np.array(f["transform_matrix"]) for f in meta["frames"]}
