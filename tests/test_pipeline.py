@@ -10,7 +10,7 @@ from tests.helpers import tiny_config, tiny_distill_config
 
 def tiny_pipeline(scene, out, **kw) -> PipelineConfig:
     return PipelineConfig(data=str(scene), out=str(out), eval_views=2, teacher=replace(tiny_config(steps=40), checkpoint_every=1000),
-                          distill=replace(tiny_distill_config(steps=20), checkpoint_every=5), octree_grid=32,
+                          distill=replace(tiny_distill_config(steps=30), checkpoint_every=5), octree_grid=32,
                           octree_epochs=1, octree_lr=1e5, bake_stride=1, **kw)
 
 
@@ -21,7 +21,7 @@ def test_pipeline_resumes_an_interrupted_distillation_and_reports_every_method(t
     cfg = tiny_pipeline(tiny_scene, run)
     assert run_pipeline(cfg, stop_after="octree_eval") == {}
     assert not (run / "stages" / "distill.json").exists()
-    # "Ctrl-C" in the middle of distillation: a checkpoint at step 10 of 20, the run not complete
+    # "Ctrl-C" in the middle of distillation: a checkpoint at step 10 of 30, the run not complete
     distill(run / "teacher", run / "smerf" / "student", distill_config(cfg), stop_at=10)
     assert not json.loads((run / "smerf" / "student" / "config.json").read_text())["complete"]
     log = []
