@@ -48,7 +48,7 @@ class OccupancyGrid(nn.Module):
         ijk = torch.stack([flat_idx // (g * g), (flat_idx // g) % g, flat_idx % g], dim=-1).float()
         return self.box_min + (ijk + jitter) * (self.box_max - self.box_min) / g
 
-    def _max_density(self, density_fn, idx: torch.Tensor, jitter: torch.Tensor, chunk: int) -> torch.Tensor:
+    def _density_at_jitter(self, density_fn, idx: torch.Tensor, jitter: torch.Tensor, chunk: int) -> torch.Tensor:
         """Density at one jittered point per listed cell (idx and jitter on the grid's device)."""
         new = torch.empty(idx.numel(), device=idx.device)
         for s in range(0, idx.numel(), chunk):
@@ -62,7 +62,7 @@ class OccupancyGrid(nn.Module):
         jitter = torch.rand(idx.numel(), 3, generator=generator)  # drawn on the CPU: the same on every device
         dev = flat.device
         idx, jitter = idx.to(dev), jitter.to(dev)
-        new = self._max_density(density_fn, idx, jitter, chunk)
+        new = self._density_at_jitter(density_fn, idx, jitter, chunk)
         # Decay every cell (instant-ngp), then raise the re-evaluated ones to their new density.
         flat.copy_(torch.where(flat < 0, flat, flat * self.decay))
         old = flat[idx]
@@ -74,17 +74,18 @@ class OccupancyGrid(nn.Module):
     @torch.no_grad()
     def refresh(self, density_fn, generator: torch.Generator, samples: int = 16, chunk: int = 1 << 18) -> None:
         """End of training: every cell's density becomes the larger of the running estimate and the maximum over
-        ``samples`` jittered points in it, and occupancy follows it by the updates' threshold. The running estimate re-evaluates an
-        eighth of the cells at one point per update and lets the rest decay, so it holds thin structures (lego's
-        cables and studs) as empty at any moment. On lego_400 this alone adds 0.4 dB on held-out views at the
-        same render time (1 point per cell +0.3, 4 +0.3 with the running grid, 16 +0.4, 32 the same); lower
-        thresholds let in density the field was never fitted on (alpha 1e-3: -2.3 dB)."""
+        ``samples`` jittered points in it, and occupancy follows it by the updates' threshold. The running
+        estimate re-evaluates an eighth of the cells at one point per update and lets the rest decay, so it holds
+        thin structures (lego's cables and studs) as empty at any moment. On lego_400 this adds 0.36 dB on the 25
+        held-out views (31.97 -> 32.33; 5 views: 4 points alone -0.14, 8 +0.27, 16 with the running estimate
+        +0.38, 32 +0.41) for ~30% more render time; lower thresholds let in density the field was never fitted
+        on (alpha 1e-3: -2.3 dB)."""
         flat = self.density.view(-1)
         idx = torch.arange(flat.numel(), device=flat.device)
         best = flat.clone()
         for _ in range(samples):
             jitter = torch.rand(flat.numel(), 3, generator=generator).to(flat.device)
-            best = torch.maximum(best, self._max_density(density_fn, idx, jitter, chunk))
+            best = torch.maximum(best, self._density_at_jitter(density_fn, idx, jitter, chunk))
         flat.copy_(best)
         self.occupied.copy_(self.density > min(self.sigma_thresh, float(best.mean())))  # the updates' rule
 

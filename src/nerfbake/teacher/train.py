@@ -233,7 +233,7 @@ def train_teacher(data: str | Path, out: str | Path, cfg: TeacherTrainConfig, re
             runlog.close()
     if start < cfg.steps <= step:  # this call finished the run
         if dp.is_main and hasattr(model, "grid"):
-            console.print("final occupancy grid: 16 points per cell (~20 s on 2 cores)")
+            console.print("final occupancy grid: re-evaluating every cell (~20 s on 2 cores)")
         model.after_training(step_generator(cfg.seed, cfg.steps))
     finish_run(dp, ckpt_path, state_dict, out / CONFIG, meta, step, cfg.steps)
     return out
