@@ -25,6 +25,9 @@ def test_update_evaluates_everything_first_then_a_random_share_and_prunes_to_the
         grid.update(ball_density, gen)
     assert grid.occupied[16, 16, 16] and not grid.occupied[0, 0, 0]
     assert grid.occupancy_fraction < 0.05
+    # Without pruning every cell stays occupied while the estimate keeps following the field.
+    grid.update(ball_density, gen, prune=False)
+    assert grid.occupied.all() and grid.density[0, 0, 0] < grid.density[16, 16, 16]
 
 
 

@@ -268,3 +268,12 @@ def test_object_centred_captures_get_the_points_box_and_a_learned_background():
     assert not torch.allclose(out["rgb"], torch.ones(4, 3))
     out["rgb"].sum().backward()
     assert teacher.background.net[0].weight.grad.abs().max() > 0
+    # Its occupancy grid prunes nothing while the background is warming up, and prunes as usual afterwards.
+    gen = torch.Generator().manual_seed(0)
+    with torch.no_grad():
+        teacher.field.density = lambda x: torch.where(x[:, 0] < 0, 0.0, 1e3)  # only one half of the box is dense
+        for step in range(0, teacher.cfg.background_warmup_steps, teacher.cfg.grid_update_every):
+            teacher.before_step(step, gen)
+            assert teacher.grid.occupied.all()
+        teacher.before_step(teacher.cfg.background_warmup_steps, gen)
+        assert 0.4 < teacher.grid.occupancy_fraction < 0.6

@@ -56,7 +56,9 @@ class OccupancyGrid(nn.Module):
         return new
 
     @torch.no_grad()
-    def update(self, density_fn, generator: torch.Generator, chunk: int = 1 << 18) -> None:
+    def update(self, density_fn, generator: torch.Generator, chunk: int = 1 << 18, prune: bool = True) -> None:
+        """Refresh the density estimate; with ``prune`` False every cell stays occupied (the estimate still
+        moves, so pruning can start from it later)."""
         flat = self.density.view(-1)
         idx = self.cells_to_update(generator)
         jitter = torch.rand(idx.numel(), 3, generator=generator)  # drawn on the CPU: the same on every device
@@ -69,7 +71,7 @@ class OccupancyGrid(nn.Module):
         flat[idx] = torch.where(old < 0, new, torch.maximum(old, new))
         evaluated = flat >= 0
         thresh = min(self.sigma_thresh, float(flat[evaluated].mean()))
-        self.occupied.copy_((self.density > thresh) | (self.density < 0))
+        self.occupied.copy_((self.density > thresh) | (self.density < 0) | (not prune))
 
     @torch.no_grad()
     def refresh(self, density_fn, generator: torch.Generator, samples: int = 16, chunk: int = 1 << 18) -> None:
