@@ -117,6 +117,7 @@ def compare_teachers(work: Path, processed: Path, gt: dict, angle_x: float, size
         cfg = preset("hash", "cpu-small")
         cfg.steps = steps
         run = work / f"teacher_{name}"
+        shutil.rmtree(run, ignore_errors=True)  # a rerun in the same --work trains afresh
         t0 = time.perf_counter()
         train_teacher(data, run, cfg)
         res = evaluate_teacher(run, "test", write_images=False)
