@@ -565,7 +565,7 @@ def build_parser() -> argparse.ArgumentParser:
     sr.add_argument("--frames", help="a test_frames.json (default: the first submodel's)")
     sr.add_argument("--width", type=int, default=800)
     sr.add_argument("--height", type=int, default=500)
-    sr.add_argument("--step-mult", type=float, default=1.0, help="the viewer's stepMult (finer steps)")
+    sr.add_argument("--step-mult", type=int, default=1, help="the viewer's stepMult, a whole number >= 1 (2 halves the step)")
     sr.set_defaults(func=cmd_smerf_render)
 
     di = sub.add_parser("distill", help="distil a teacher into SMERF submodels (K^3 camera partition)")

@@ -189,6 +189,8 @@ def test_baked_renderer_matches_the_student_on_a_smooth_scene(tmp_path):
     psnr = -10 * np.log10(np.mean((ours - baked) ** 2))
     print("smooth-scene baked vs student PSNR", psnr)
     assert psnr > 30, psnr
+    with pytest.raises(ValueError, match="stepMult"):  # a fraction would leave the marcher no steps (a blank image)
+        render_baked(SceneAssets.open(tmp_path), viewer_camera(cam, part), step_mult=0.5)
 
 
 def test_cli_eval_prints_the_contract_keys(tiny_student, tiny_assets_dir, capsys):

@@ -128,8 +128,12 @@ def deferred_shade(acc: dict, view_dirs: torch.Tensor, weights, params: dict, ba
 
 def render_baked(scene: SceneAssets, cam: ViewerCamera, step_mult: float = 1.0, visibility_delay: float = 0.99,
                  background=(0.5, 0.5, 0.5), device: str = "cpu") -> np.ndarray:
-    """(H, W, 3) float image in [0, 1] (before the viewer's 8-bit rounding)."""
+    """(H, W, 3) float image in [0, 1] (before the viewer's 8-bit rounding). ``step_mult`` is the viewer's
+    ``stepMult``: a whole number that divides the step and multiplies the step budget (0.5 would leave no steps)."""
     from nerfbake.kernels.smerf_march import march_baked, to_warp_scene
+
+    if step_mult < 1 or int(step_mult) != step_mult:
+        raise ValueError(f"step_mult={step_mult}: the viewer's stepMult is a whole number >= 1 (2 halves the step)")
 
     si = submodel_for_position(scene.params, cam.position)
     sm = scene.submodel(si)
