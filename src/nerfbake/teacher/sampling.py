@@ -69,9 +69,17 @@ class OccupancyGrid(nn.Module):
         flat.copy_(torch.where(flat < 0, flat, flat * self.decay))
         old = flat[idx]
         flat[idx] = torch.where(old < 0, new, torch.maximum(old, new))
-        evaluated = flat >= 0
-        thresh = min(self.sigma_thresh, float(flat[evaluated].mean()))
-        self.occupied.copy_((self.density > thresh) | (self.density < 0) | (not prune))
+        if prune:
+            self._occupy_by_threshold()
+        else:
+            self.occupied.fill_(True)
+
+    def _occupy_by_threshold(self) -> None:
+        """Occupied: density above min(alpha threshold, mean evaluated density), or never evaluated. The mean
+        keeps a young or undertrained field's grid from emptying while its densities are all still small."""
+        evaluated = self.density >= 0
+        thresh = min(self.sigma_thresh, float(self.density[evaluated].mean()))
+        self.occupied.copy_((self.density > thresh) | ~evaluated)
 
     @torch.no_grad()
     def refresh(self, density_fn, generator: torch.Generator, samples: int = 16, chunk: int = 1 << 18) -> None:
@@ -89,7 +97,7 @@ class OccupancyGrid(nn.Module):
             jitter = torch.rand(flat.numel(), 3, generator=generator).to(flat.device)
             best = torch.maximum(best, self._density_at_jitter(density_fn, idx, jitter, chunk))
         flat.copy_(best)
-        self.occupied.copy_(self.density > min(self.sigma_thresh, float(best.mean())))  # the updates' rule
+        self._occupy_by_threshold()  # the updates' rule
 
     @property
     def occupancy_fraction(self) -> float:
