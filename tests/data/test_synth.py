@@ -67,9 +67,14 @@ def test_rooms_cameras_inside_both_rooms(tmp_path):
         inside = [n for n, (lo, hi) in rooms.items() if (f.camera.origin > lo).all() and (f.camera.origin < hi).all()]
         assert len(inside) == 1
         seen.add(inside[0])
+        for obj in meta["objects"].values():  # never inside (or touching) an object: such a view is black
+            assert np.linalg.norm(f.camera.origin - obj["center"]) > obj["radius"] + 0.2
+        centre = np.mean(rooms[inside[0]], 0)  # facing into the room, not at the wall behind
+        assert np.dot(-f.camera.c2w[:3, 2][:2], (centre - f.camera.origin)[:2]) > 0
     assert seen == {"A", "B"}
-    img = ds.image(0)
-    assert img.shape == (36, 48, 3) and img.mean() > 0.05  # lit, opaque
+    for i in range(len(ds.frames)):
+        img = ds.image(i)
+        assert img.shape == (36, 48, 3) and img.mean() > 0.05  # lit, opaque
 
 
 def test_synth_list_and_bad_scene(tmp_path):
