@@ -277,3 +277,24 @@ def test_object_centred_captures_get_the_points_box_and_a_learned_background():
             assert teacher.grid.occupied.all()
         teacher.before_step(teacher.cfg.background_warmup_steps, gen)
         assert 0.4 < teacher.grid.occupancy_fraction < 0.6
+
+
+def test_a_blender_scene_with_its_cameras_inside_its_box_is_contracted():
+    """Indoors (cameras inside the box) the teacher marches contracted with proposal sampling: through the
+    occupancy grid such a field fogs up and paints each view in front of its camera. Object scenes keep the grid."""
+    from nerfbake.data.cameras import Camera
+    from nerfbake.data.dataset import Dataset, Frame
+    from nerfbake.data.synth import look_at
+    from nerfbake.teacher.train import scene_box
+
+    def blender(eyes, aabb=None):
+        frames = [Frame(f"{i}.png", None, Camera(look_at(e, [0, 0, 0.5]), 8, 8, 8.0, 8.0, 4.0, 4.0))
+                  for i, e in enumerate(eyes)]
+        return Dataset("blender", Path("."), frames, {"train": list(range(len(frames)))}, bounds=(0.05, 5.0),
+                       extras={"aabb": aabb} if aabb else {})
+
+    aabb = ([-2.0, -1.0, 0.0], [2.0, 1.0, 1.5])
+    indoor = scene_box(blender([[-1.0, 0.2, 0.7], [1.2, -0.3, 0.8], [0.5, 0.5, 0.6]], aabb))
+    assert indoor.contracted and indoor.box_min == aabb[0] and indoor.near == 0.05 and indoor.far > 1e9
+    outdoor = scene_box(blender([[4.0, 0.0, 2.0], [0.0, 4.0, 2.0], [-4.0, 0.0, 2.0]]))
+    assert not outdoor.contracted and outdoor.box_min == [-1.5] * 3 and outdoor.far == 5.0

@@ -136,9 +136,11 @@ class HashTeacher(nn.Module):
             warming_up = self.background is not None and step < self.cfg.background_warmup_steps
             self.grid.update(self.field.density, generator, prune=not warming_up)
 
-    def after_training(self, generator: torch.Generator) -> None:
+    def after_training(self, generator: torch.Generator, log=None) -> None:
         """Once, when the last step is done: the occupancy grid the saved teacher renders with (see refresh)."""
         if not self.box.contracted:
+            if log is not None:
+                log("final occupancy grid: re-evaluating every cell (~20 s on 2 cores)")
             self.grid.refresh(self.field.density, generator)
 
     @property
@@ -228,7 +230,7 @@ class NeRFSHTeacher(nn.Module):
     def before_step(self, step, generator) -> None:
         pass
 
-    def after_training(self, generator) -> None:
+    def after_training(self, generator, log=None) -> None:
         pass
 
     def _near_far(self, origins, dirs):

@@ -45,12 +45,21 @@ def scene_box(ds: Dataset) -> SceneBox:
     if ds.format == "blender":
         near, far = ds.bounds or (2.0, 6.0)
         lo, hi = ds.extras.get("aabb", ([-1.5] * 3, [1.5] * 3))
+        if cameras_inside(ds, lo, hi):
+            return SceneBox(list(lo), list(hi), near, 1e10, contracted=True)
         return SceneBox(list(lo), list(hi), near, far)
     near = 0.01 if ds.bounds is None else max(0.01, 0.9 * ds.bounds[0])
     box = object_box([ds.frames[i] for i in ds.split("train")] if "train" in ds.splits else ds.frames, ds.points)
     if box is not None:
         return SceneBox([float(v) for v in box[0]], [float(v) for v in box[1]], near, 1e10, learned_background=True)
     return SceneBox([-1.0] * 3, [1.0] * 3, near, 1e10, contracted=True)
+
+
+def cameras_inside(ds: Dataset, lo, hi) -> bool:
+    """Whether most training cameras stand inside the box ``lo``..``hi``."""
+    frames = [ds.frames[i] for i in ds.split("train")] if "train" in ds.splits else ds.frames
+    origins = np.stack([f.camera.origin for f in frames])
+    return bool((((origins > np.asarray(lo)) & (origins < np.asarray(hi))).all(1)).mean() > 0.5)
 
 
 def config_from_dict(d: dict) -> TeacherTrainConfig:
@@ -232,8 +241,6 @@ def train_teacher(data: str | Path, out: str | Path, cfg: TeacherTrainConfig, re
         finally:
             runlog.close()
     if start < cfg.steps <= step:  # this call finished the run
-        if dp.is_main and hasattr(model, "grid"):
-            console.print("final occupancy grid: re-evaluating every cell (~20 s on 2 cores)")
-        model.after_training(step_generator(cfg.seed, cfg.steps))
+        model.after_training(step_generator(cfg.seed, cfg.steps), log=console.print if dp.is_main else None)
     finish_run(dp, ckpt_path, state_dict, out / CONFIG, meta, step, cfg.steps)
     return out
