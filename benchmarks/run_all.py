@@ -1,7 +1,8 @@
 """Every benchmark in one go, one JSON summary: teacher training/rendering rays/s per field, a short pipeline on the
 built-in scene (build and bake times, each stage's peak memory), the octree and baked-SMERF renderers' rays/s and
 ms/frame on its outputs, the browser's ms/frame for both scene kinds, and the SfM pose accuracy. ~10-15 minutes on
-2 CPU cores; each script runs in its own process so its peak resident memory is its own.
+2 CPU cores; each script runs in its own process so its peak resident memory is its own. Left to be run on their
+own, being long: the teacher comparison of ``process_quality.py --teacher-steps`` and ``smerf_partition.py``.
 
     python benchmarks/run_all.py [--out outputs/bench] [--data ../shared/data/lego_400]
     -> writes OUT/summary.json and prints it

@@ -253,6 +253,33 @@ def test_two_rooms_with_k2_bake_one_valid_folder_per_alive_submodel(rooms_k2):
     assert scene.mlp["ResampleDense_0/kernel"].shape[0] == part.num_alive
 
 
+def test_a_camera_near_a_partition_boundary_looks_alike_from_both_submodels(rooms_k2, rooms_teacher):
+    """SMERF's consistency claim: switching submodels at a boundary changes the picture less than the student
+    differs from its teacher (benchmarks/smerf_partition.py measures it on a larger rooms scene)."""
+    from nerfbake.data.formats import load_dataset
+    from nerfbake.smerf.seams import boundary_cameras, compare_across_boundary
+    from nerfbake.teacher.train import load_teacher
+
+    student_dir, assets = rooms_k2
+    student, _, meta = load_student(student_dir)
+    ds = load_dataset(meta["data"])
+    origins = np.stack([ds.frames[i].camera.origin for i in ds.split("train")])
+    [pair] = boundary_cameras(student.partition, origins, 1)
+    assert pair["gap_cell_widths"] < 0.1 and pair["home"] != pair["neighbour"]
+    scene = SceneAssets.open(assets)
+    [rec] = compare_across_boundary(student, load_teacher(rooms_teacher)[0].eval(), ds, "train", [pair], scene)
+    assert rec["seamless"], rec
+    assert rec["student"]["home_vs_neighbour"] > 20, rec
+    # the baked pair is reported too; each baked submodel holds only what its own cameras see, so it is no bound
+    assert set(rec["baked"]) == {"home_vs_neighbour", "home_vs_teacher", "neighbour_vs_teacher"}
+    from nerfbake.smerf.bake import viewer_camera
+    from nerfbake.smerf.baked_render import render_baked
+
+    n = student.partition.num_alive
+    with pytest.raises(ValueError, match=f"params_idx={n}"):
+        render_baked(scene, viewer_camera(ds.frames[0].camera, student.partition), params_idx=n)
+
+
 def test_baking_over_two_processes_writes_the_same_files(rooms_k2, tmp_path):
     """torchrun deals the submodels out over the ranks; the folder equals the one-process bake byte for byte
     (gzip members carry no time stamp, so bakes are reproducible)."""

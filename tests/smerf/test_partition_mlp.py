@@ -7,6 +7,7 @@ import torch
 from nerfbake.smerf.baked_render import VIEWER_FROM_TRAIN, deferred_mlp_weights
 from nerfbake.smerf.deferred_mlp import GridMLP
 from nerfbake.smerf.partition import Partition, PartitionError
+from nerfbake.smerf.seams import boundary_cameras
 
 
 def test_partition_assigns_cameras_by_cell_and_inf_norm():
@@ -37,6 +38,23 @@ def test_partition_assigns_cameras_by_cell_and_inf_norm():
     assert Partition.from_json(part.to_json()).sm_to_params == part.sm_to_params
     for p in range(part.num_alive):
         assert p not in part.neighbours(p)
+
+
+def test_boundary_cameras_are_the_ones_nearest_a_face_shared_with_an_alive_neighbour():
+    rng = np.random.default_rng(1)
+    # two rooms along x, every camera at one y and z: with K = 2 only the two cells split at x = 0 come alive
+    x = np.concatenate([rng.uniform(-4, -0.8, 20), rng.uniform(0.8, 4, 20)])
+    cams = np.stack([x, np.full(40, 0.25), np.full(40, 0.25)], 1)
+    part = Partition.from_cameras(cams, k=2)
+    assert part.num_alive == 2
+    probes = np.array([[-0.1, 0.25, 0.25], [2.5, 0.25, 0.25], [40.0, 0.25, 0.25]])  # by the face, deep in B, outside
+    pairs = boundary_cameras(part, probes, 5)
+    assert [q["camera"] for q in pairs] == [0, 1]  # nearest first; the one outside the cube is skipped
+    q = pairs[0]
+    assert {q["home"], q["neighbour"]} == {0, 1} and q["home"] == part.assign(probes[:1])[0]
+    cube_x = part.normalize(probes)[:, 0]
+    assert q["gap_cell_widths"] == pytest.approx(abs(cube_x[0]))  # cells are 1 wide in the cube at K = 2
+    assert pairs[1]["gap_cell_widths"] == pytest.approx(abs(cube_x[1]))
 
 
 def test_grid_mlp_interpolation_matches_the_viewer():
@@ -101,3 +119,22 @@ def test_grid_mlp_forward_equals_per_ray_interpolated_layers():
         h = torch.einsum("ri,rio->ro", h, k) + b
         h = torch.nn.functional.elu(h) if i < 2 else torch.sigmoid(h)
     assert torch.allclose(mlp(x, idx, pos), h, atol=1e-5)
+
+
+def test_deferred_mlp_json_reads_back_the_same_float32_weights():
+    import gzip
+    import json
+
+    from nerfbake.smerf.deferred_mlp import deferred_mlp_text
+
+    export = GridMLP(3, width=16, grid=5, generator=torch.Generator().manual_seed(0)).export()
+    back = json.loads(deferred_mlp_text(export))
+    assert list(back) == list(export)
+    for name, entry in export.items():
+        assert back[name]["shape"] == entry["shape"]
+        np.testing.assert_array_equal(np.float32(back[name]["data"]), np.float32(entry["data"]))
+    # the shortest float32 digits, not a widened double's 17: the gzip file is markedly smaller
+    assert len(gzip.compress(deferred_mlp_text(export).encode())) < 0.75 * len(gzip.compress(json.dumps(export).encode()))
+    export["ResampleDense_0/bias"]["data"][0] = float("nan")
+    with pytest.raises(ValueError, match="non-finite"):
+        deferred_mlp_text(export)

@@ -28,6 +28,7 @@ import torch
 import torch.nn.functional as F
 
 from nerfbake.progress import console, progress_bar
+from nerfbake.smerf.deferred_mlp import deferred_mlp_text
 from nerfbake.smerf.quantize import RANGE_DENSITY, RANGE_FEATURES, to_bytes
 from nerfbake.smerf.validate import ATLAS_BLOCK, MAX_ATLAS_SIDE, OCCUPANCY_FACTORS
 
@@ -284,7 +285,7 @@ def write_submodel(folder: Path, student, params_idx: int, alive: torch.Tensor, 
     text = json.dumps(params)
     (folder / "scene_params.json").write_text(text)
     (folder / "scene_params.json.gz").write_bytes(gzip.compress(text.encode(), mtime=0))
-    (folder / "deferred_mlp.json.gz").write_bytes(gzip.compress(json.dumps(mlp_json).encode(), mtime=0))
+    (folder / "deferred_mlp.json.gz").write_bytes(gzip.compress(deferred_mlp_text(mlp_json).encode(), mtime=0))
     (folder / "test_frames.json").write_text(json.dumps(frames))
     return {"alive_voxels": int(alive.sum()), "alive_blocks": sizes["num_alive_blocks"],
             "atlas": [sizes["atlas_width"], sizes["atlas_height"], sizes["atlas_depth"]]}

@@ -127,15 +127,19 @@ def deferred_shade(acc: dict, view_dirs: torch.Tensor, weights, params: dict, ba
 
 
 def render_baked(scene: SceneAssets, cam: ViewerCamera, step_mult: float = 1.0, visibility_delay: float = 0.99,
-                 background=(0.5, 0.5, 0.5), device: str = "cpu") -> np.ndarray:
+                 background=(0.5, 0.5, 0.5), device: str = "cpu", params_idx: int | None = None) -> np.ndarray:
     """(H, W, 3) float image in [0, 1] (before the viewer's 8-bit rounding). ``step_mult`` is the viewer's
-    ``stepMult``: a whole number that divides the step and multiplies the step budget (0.5 would leave no steps)."""
+    ``stepMult``: a whole number that divides the step and multiplies the step budget (0.5 would leave no steps).
+    The submodel is the camera's own unless ``params_idx`` names another (what a viewer shows while the camera's
+    submodel is still streaming in; how far apart two submodels' pictures of one view are)."""
     from nerfbake.kernels.smerf_march import march_baked, to_warp_scene
 
     if step_mult < 1 or int(step_mult) != step_mult:
         raise ValueError(f"step_mult={step_mult}: the viewer's stepMult is a whole number >= 1 (2 halves the step)")
 
-    si = submodel_for_position(scene.params, cam.position)
+    si = submodel_for_position(scene.params, cam.position) if params_idx is None else int(params_idx)
+    if not 0 <= si < len(scene.params["params_to_sm"]):
+        raise ValueError(f"params_idx={si}: {scene.root} has submodels 0..{len(scene.params['params_to_sm']) - 1}")
     sm = scene.submodel(si)
     scale = float(sm.params["submodel_scale"])
     origins, dirs = camera_rays(cam, submodel_center(sm.params, si), scale)

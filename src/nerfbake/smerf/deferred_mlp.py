@@ -4,6 +4,7 @@ colour can vary across a large scene. Arrays are ``[submodel, z, y, x, ...]`` ov
 ``deferred_mlp.json`` stores and the viewer (and :func:`nerfbake.smerf.baked_render.deferred_mlp_weights`) reads."""
 from __future__ import annotations
 
+import json
 import math
 
 import torch
@@ -109,3 +110,20 @@ class GridMLP(nn.Module):
                 t = t.detach().cpu()
                 out[f"ResampleDense_{i}/{name}"] = {"shape": list(t.shape), "data": t.reshape(-1).tolist()}
         return out
+
+
+def deferred_mlp_text(export: dict) -> str:
+    """``export`` as JSON text, every weight written as the shortest decimal that reads back as the same float32.
+    ``json.dumps`` writes a float32 widened to double with up to 17 digits; this file is repeated in every
+    submodel folder and holds the MLPs of all of them, so it dominates small scenes (lego K = 1: 1.1 MB of 5.7)."""
+    import numpy as np
+
+    def array(values) -> str:
+        data = np.asarray(values, dtype=np.float32).reshape(-1)
+        if not np.isfinite(data).all():
+            raise ValueError("the deferred MLP has non-finite weights; the distillation diverged")
+        return "[" + ",".join(str(v) for v in data) + "]"
+
+    items = [f'{json.dumps(name)}: {{"shape": {json.dumps(list(entry["shape"]))}, "data": {array(entry["data"])}}}'
+             for name, entry in export.items()]
+    return "{" + ", ".join(items) + "}"

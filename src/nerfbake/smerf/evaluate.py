@@ -12,7 +12,8 @@ from nerfbake.train.loop import git_revision, write_json_atomic
 
 
 def asset_summary(root: str | Path) -> dict:
-    """Submodels, their disk sizes (the whole scene and the largest one a viewer holds at a time) and format check."""
+    """Submodels, their disk sizes (the whole scene and the largest one a viewer holds at a time, with and without the
+    deferred-MLP file every folder repeats) and format check."""
     from nerfbake.smerf.validate import asset_problems
 
     scene = SceneAssets.open(root)
@@ -24,8 +25,13 @@ def asset_summary(root: str | Path) -> dict:
                      "disk_bytes": sum(f.stat().st_size for f in folder.iterdir() if f.is_file()),
                      **{k: p.get(k) for k in ("triplane_resolution", "sparse_grid_resolution", "atlas_width", "atlas_height",
                                               "atlas_depth", "submodel_scale")}})
+    for s in subs:  # every folder repeats the deferred MLPs of all submodels; the viewer reads them once
+        mlp = Path(s["folder"]) / "deferred_mlp.json.gz"
+        s["deferred_mlp_bytes"] = mlp.stat().st_size if mlp.is_file() else 0
     return {"assets": str(scene.root), "num_submodels": len(subs), "grid": round(2.0 / scene.params["submodel_voxel_size"]),
             "disk_bytes": sum(s["disk_bytes"] for s in subs), "peak_submodel_bytes": max(s["disk_bytes"] for s in subs),
+            "peak_submodel_grid_bytes": max(s["disk_bytes"] - s["deferred_mlp_bytes"] for s in subs),
+            "deferred_mlp_bytes": max(s["deferred_mlp_bytes"] for s in subs),
             "deferred_mlp_grid": list(scene.mlp["ResampleDense_0/kernel"].shape[1:4]), "submodels": subs,
             "format_problems": asset_problems(scene.root)}
 
