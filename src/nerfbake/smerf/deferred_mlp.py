@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import math
 
+import numpy as np
 import torch
 from torch import nn
 
@@ -116,8 +117,6 @@ def deferred_mlp_text(export: dict) -> str:
     """``export`` as JSON text, every weight written as the shortest decimal that reads back as the same float32.
     ``json.dumps`` writes a float32 widened to double with up to 17 digits; this file is repeated in every
     submodel folder and holds the MLPs of all of them, so it dominates small scenes (lego K = 1: 1.1 MB of 5.7)."""
-    import numpy as np
-
     def array(values) -> str:
         data = np.asarray(values, dtype=np.float32).reshape(-1)
         if not np.isfinite(data).all():

@@ -21,13 +21,12 @@ def asset_summary(root: str | Path) -> dict:
     for params_idx, sm in enumerate(scene.params["params_to_sm"]):
         folder = scene.root / f"sm_{sm:03d}"
         p = read_params(folder)
+        mlp = folder / "deferred_mlp.json.gz"  # every folder repeats the MLPs of all submodels; the viewer reads one
         subs.append({"params_idx": params_idx, "submodel": sm, "folder": str(folder),
                      "disk_bytes": sum(f.stat().st_size for f in folder.iterdir() if f.is_file()),
+                     "deferred_mlp_bytes": mlp.stat().st_size if mlp.is_file() else 0,
                      **{k: p.get(k) for k in ("triplane_resolution", "sparse_grid_resolution", "atlas_width", "atlas_height",
                                               "atlas_depth", "submodel_scale")}})
-    for s in subs:  # every folder repeats the deferred MLPs of all submodels; the viewer reads them once
-        mlp = Path(s["folder"]) / "deferred_mlp.json.gz"
-        s["deferred_mlp_bytes"] = mlp.stat().st_size if mlp.is_file() else 0
     return {"assets": str(scene.root), "num_submodels": len(subs), "grid": round(2.0 / scene.params["submodel_voxel_size"]),
             "disk_bytes": sum(s["disk_bytes"] for s in subs), "peak_submodel_bytes": max(s["disk_bytes"] for s in subs),
             "peak_submodel_grid_bytes": max(s["disk_bytes"] - s["deferred_mlp_bytes"] for s in subs),

@@ -18,12 +18,12 @@ def boundary_cameras(partition: Partition, origins: np.ndarray, count: int) -> l
     ``{camera, home, neighbour, gap_cell_widths}``; the gap is the inf-norm distance to the neighbour's cell in
     cell widths (0 on the shared face). Cameras outside the partition cube (which no submodel renders) are skipped."""
     cube = partition.normalize(origins)
+    homes = partition.assign(origins)
     half = 1.0 / partition.k
     pairs = []
-    for i, p in enumerate(cube):
+    for i, (p, home) in enumerate(zip(cube, homes.tolist())):
         if np.abs(p).max() > 1.0:
             continue
-        home = int(partition.assign(origins[i][None])[0])
         gaps = [(float(np.maximum(np.abs(p - partition.cell_centre(partition.params_to_sm[nb])) - half, 0).max()), nb)
                 for nb in partition.neighbours(home)]
         if gaps:

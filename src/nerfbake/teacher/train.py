@@ -42,22 +42,22 @@ def scene_box(ds: Dataset) -> SceneBox:
     front of it is seen by one camera alone, and a contracted teacher left to use it explains each view with a
     screen there (lego as an opaque capture, 1000 steps: 8.7 dB held-out with near 0.01, 16.5 with near at 0.45
     normalised)."""
+    train_frames = [ds.frames[i] for i in ds.split("train")] if "train" in ds.splits else ds.frames
     if ds.format == "blender":
         near, far = ds.bounds or (2.0, 6.0)
         lo, hi = ds.extras.get("aabb", ([-1.5] * 3, [1.5] * 3))
-        if cameras_inside(ds, lo, hi):
+        if cameras_inside(train_frames, lo, hi):
             return SceneBox(list(lo), list(hi), near, 1e10, contracted=True)
         return SceneBox(list(lo), list(hi), near, far)
     near = 0.01 if ds.bounds is None else max(0.01, 0.9 * ds.bounds[0])
-    box = object_box([ds.frames[i] for i in ds.split("train")] if "train" in ds.splits else ds.frames, ds.points)
+    box = object_box(train_frames, ds.points)
     if box is not None:
         return SceneBox([float(v) for v in box[0]], [float(v) for v in box[1]], near, 1e10, learned_background=True)
     return SceneBox([-1.0] * 3, [1.0] * 3, near, 1e10, contracted=True)
 
 
-def cameras_inside(ds: Dataset, lo, hi) -> bool:
-    """Whether most training cameras stand inside the box ``lo``..``hi``."""
-    frames = [ds.frames[i] for i in ds.split("train")] if "train" in ds.splits else ds.frames
+def cameras_inside(frames, lo, hi) -> bool:
+    """Whether most of these frames' cameras stand inside the box ``lo``..``hi``."""
     origins = np.stack([f.camera.origin for f in frames])
     return bool((((origins > np.asarray(lo)) & (origins < np.asarray(hi))).all(1)).mean() > 0.5)
 
