@@ -29,8 +29,9 @@ def sync() -> None:
         torch.cuda.synchronize()
 
 
-def time_training(kind: str, ds, store, warmup: int, steps: int) -> dict:
-    cfg = preset(kind, "cpu-small")
+def time_training(kind: str, ds, store, warmup: int, steps: int, cfg=None) -> dict:
+    """Training and rendering rates of one teacher (the preset's, or ``cfg``) after ``warmup`` steps."""
+    cfg = cfg or preset(kind, "cpu-small")
     device = default_device()
     model = build_teacher(kind, cfg.model_config, scene_box(ds)).to(device)
     opt = make_optimizer(model, cfg)
@@ -62,7 +63,7 @@ def time_training(kind: str, ds, store, warmup: int, steps: int) -> dict:
         rdt = time.perf_counter() - t
     return {"train_rays_per_s": cfg.batch_rays * steps / dt, "train_samples_per_ray": samples / (cfg.batch_rays * steps),
             "train_ms_per_step": 1000 * dt / steps, "batch_rays": cfg.batch_rays, "render_rays_per_s": 8192 / rdt,
-            "note": f"after {warmup} warm-up steps (occupancy grid pruned)" if kind == "hash" else ""}
+            "note": f"after {warmup} warm-up steps" + (" (occupancy grid pruned)" if hasattr(model, "grid") else "")}
 
 
 def time_hash_kernel() -> dict:

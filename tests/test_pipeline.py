@@ -77,3 +77,29 @@ def test_two_process_pipeline_equals_one(tiny_scene, tmp_path):
     assert [r["method"] for r in a] == [r["method"] for r in b] and len(a) == 6
     for ra, rb in zip(a, b):
         assert abs(ra["psnr"] - rb["psnr"]) < 0.05, (ra["method"], ra["psnr"], rb["psnr"])
+
+
+def test_photos_over_the_working_size_are_downscaled_and_why_is_said(fox, fern):
+    from nerfbake.pipeline import resolve_downscale
+
+    factor, why = resolve_downscale(PipelineConfig(data=str(fox), out="unused"))
+    assert factor == 4 and "1080x1920" in why and "270x480" in why  # 1920 / 2 = 960 is still over 800
+    assert resolve_downscale(PipelineConfig(data=str(fox), out="unused", preset="paper"))[0] == 2
+    assert resolve_downscale(PipelineConfig(data=str(fern), out="unused"))[0] == 8  # images_8 already fits
+    assert resolve_downscale(PipelineConfig(data=str(fox), out="unused", downscale=1))[0] == 1
+
+
+def test_a_method_that_cannot_run_on_a_scene_is_skipped_with_a_reason(tmp_path):
+    from nerfbake.pipeline import STAGES, skip_reason
+    from nerfbake.train.loop import write_json_atomic
+
+    octree = next(s for s in STAGES if s.name == "octree_build")
+    smerf = next(s for s in STAGES if s.name == "distill")
+    for kind, contracted, skipped in [("forward-facing", True, True), ("unbounded-360", True, False),
+                                      ("object-centric", False, False)]:
+        write_json_atomic(tmp_path / "teacher" / "config.json",
+                          {"box": {"contracted": contracted}, "dataset": {"scene_kind": kind}})
+        reason = skip_reason(octree, tmp_path)
+        assert (reason is not None) == skipped and skip_reason(smerf, tmp_path) is None
+        if skipped:
+            assert "forward-facing" in reason and "SMERF" in reason

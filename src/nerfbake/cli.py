@@ -149,7 +149,8 @@ def cmd_pipeline(args) -> int:
     cfg = PipelineConfig(data=args.data, out=args.out, preset=args.preset, methods=methods, k=args.k,
                          eval_views=args.eval_views or None, teacher_steps=args.teacher_steps,
                          distill_steps=args.distill_steps, octree_grid=args.octree_grid, octree_epochs=args.octree_epochs,
-                         octree_lr=args.octree_lr, bake_stride=args.bake_stride, teacher=teacher, distill=distill)
+                         octree_lr=args.octree_lr, bake_stride=args.bake_stride, teacher=teacher, distill=distill,
+                         downscale=args.downscale)
     results = run_pipeline(cfg, stop_after=args.stop_after, log=lambda line: print(line, file=sys.stderr, flush=True))
     if results:
         _print_summary(Path(args.out), results)
@@ -372,9 +373,11 @@ def cmd_smerf_eval(args) -> int:
     from nerfbake.smerf.evaluate import evaluate_assets, evaluate_student
 
     if args.student:
-        result = evaluate_student(args.student, args.data, args.split, args.max_views, write_images=not args.no_images)
+        result = evaluate_student(args.student, args.data, args.split, args.max_views, write_images=not args.no_images,
+                                  downscale=args.downscale)
     else:
-        result = evaluate_assets(args.assets, args.data, args.split, args.max_views, write_images=not args.no_images)
+        result = evaluate_assets(args.assets, args.data, args.split, args.max_views, write_images=not args.no_images,
+                                 downscale=args.downscale)
     if args.json:
         _print_json(result)
     else:
@@ -415,8 +418,8 @@ def build_parser() -> argparse.ArgumentParser:
     info.add_argument("--json", action="store_true", help="print one JSON object")
     info.add_argument("--downscale", type=float, default=1.0, help="image downscale factor (intrinsics scale with it)")
     info.add_argument("--format", choices=["blender", "llff", "colmap", "transforms"], help="skip auto-detection")
-    info.add_argument("--normalize", choices=["forward-facing", "object-centric", "none"],
-                      help="override the format's default scene normalisation")
+    info.add_argument("--normalize", choices=["auto", "forward-facing", "object-centric", "none"],
+                      help="override the scene normalisation (auto: forward-facing or 360 from the cameras)")
     info.set_defaults(func=cmd_data_info)
 
     met = sub.add_parser("metrics", help="PSNR, SSIM, LPIPS (alex, vgg) between two images (RGBA on white)")
@@ -556,6 +559,7 @@ def build_parser() -> argparse.ArgumentParser:
     se.add_argument("--data", help="dataset (default: the one the student was distilled on)")
     se.add_argument("--split", default="test")
     se.add_argument("--max-views", type=int)
+    se.add_argument("--downscale", type=float, help="image downscale (default: the one the student was distilled at)")
     se.add_argument("--no-images", action="store_true")
     se.add_argument("--json", action="store_true")
     se.set_defaults(func=cmd_smerf_eval)
@@ -607,6 +611,8 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument("--methods", default="octree,smerf", help="comma-separated subset of octree,smerf")
     pl.add_argument("--k", type=int, default=1, help="SMERF partition: K^3 submodels")
     pl.add_argument("--eval-views", type=int, default=25, help="evenly spaced test views per evaluation (0: all)")
+    pl.add_argument("--downscale", type=float, help="image downscale for every stage (default: automatic, photos over "
+                    "800 px on the long side for cpu-small, 1600 for paper, are halved until they fit; images_N/ used)")
     pl.add_argument("--teacher-steps", type=int)
     pl.add_argument("--distill-steps", type=int)
     pl.add_argument("--octree-grid", type=int)

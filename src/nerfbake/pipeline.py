@@ -21,6 +21,9 @@ from typing import Callable
 from nerfbake.train.loop import DataParallel, write_json_atomic
 
 METHODS = ("octree", "smerf")
+# Photos larger than this on their long side are downscaled by a power of two when no --downscale is given (the
+# ``images_N/`` folders written by ``nerfbake process`` and shipped with LLFF/mip-NeRF 360 data are used for them).
+WORKING_SIZE = {"cpu-small": 800, "paper": 1600}
 
 
 @dataclass
@@ -31,6 +34,8 @@ class PipelineConfig:
     methods: tuple[str, ...] = METHODS
     k: int = 1
     field: str = "hash"
+    downscale: float | None = None  # None: automatic, from the photos' size and the preset's WORKING_SIZE
+    downscale_why: str = ""  # how the downscale was chosen (filled in by run_pipeline)
     eval_views: int | None = 25  # evenly spaced test views (None: the whole split)
     # Overrides of the presets (None keeps the preset's value); the demo uses them to fit in minutes.
     teacher_steps: int | None = None
@@ -55,6 +60,44 @@ class Stage:
     parallel: bool = False  # every rank takes part (data-parallel training); otherwise rank 0 only
 
 
+def resolve_downscale(cfg: PipelineConfig) -> tuple[float, str]:
+    """(downscale, why): the one every stage trains and evaluates at. An explicit ``--downscale`` (or a whole teacher
+    config's) wins; otherwise the smallest power of two that brings the photos' long side within the preset's
+    working size (readers count their ``images_N/`` folders in: fern's images_8 is already 8)."""
+    if cfg.downscale is not None:
+        return float(cfg.downscale), f"--downscale {cfg.downscale:g}"
+    if cfg.teacher is not None:
+        return float(cfg.teacher.downscale), "the teacher config's downscale"
+    from nerfbake.data.formats import load_dataset
+
+    ds = load_dataset(cfg.data)
+    cam = ds.frames[0].camera
+    longest, limit = max(cam.width, cam.height), WORKING_SIZE.get(cfg.preset, 800)
+    factor = 1
+    while longest / factor > limit:
+        factor *= 2
+    total = ds.downscale * factor
+    if factor == 1:
+        return total, f"{cam.width}x{cam.height} images fit the {cfg.preset} preset's {limit} px (downscale {total:g})"
+    return total, (f"{cam.width}x{cam.height} images are over the {cfg.preset} preset's {limit} px on the long side: "
+                   f"downscale {total:g} ({cam.width // factor}x{cam.height // factor}); --downscale 1 keeps them whole")
+
+
+def skip_reason(stage: Stage, run: Path) -> str | None:
+    """Why a method cannot run on this scene (the pipeline then skips its stages with that one line), or None.
+
+    The octree route needs something bounded to cover: a forward-facing capture's content lies in front of the
+    cameras, out to infinity, with no box around it that its cameras look into from outside."""
+    if stage.method != "octree":
+        return None
+    meta = json.loads((run / "teacher" / "config.json").read_text())
+    kind = meta.get("dataset", {}).get("scene_kind")
+    if meta["box"].get("contracted") and kind == "forward-facing":
+        return ("a PlenOctree covers one bounded box, and this forward-facing capture's content lies in front of its "
+                "cameras out to infinity; use SMERF for it")
+    return None
+
+
 # --- stages ---------------------------------------------------------------------------------------------------------
 
 def teacher_config(cfg: PipelineConfig):
@@ -63,6 +106,8 @@ def teacher_config(cfg: PipelineConfig):
     t = cfg.teacher or preset(cfg.field, cfg.preset)
     if cfg.teacher_steps:
         t.steps = cfg.teacher_steps
+    if cfg.downscale is not None:
+        t.downscale = cfg.downscale
     return t
 
 
@@ -114,6 +159,7 @@ def run_octree_optimize(cfg: PipelineConfig, run: Path) -> dict:
         o = replace(o, epochs=cfg.octree_epochs)
     if cfg.octree_lr:
         o = replace(o, lr=cfg.octree_lr)
+    o = replace(o, downscale=cfg.downscale or 1.0)
     p = octree_paths(run)
     res = optimize_tree(p["raw"], cfg.data, p["optimized"], o)
     return {k: v for k, v in res.items() if k != "history"} | {"history": res.get("history", [])}
@@ -132,7 +178,7 @@ def eval_octree(cfg: PipelineConfig, run: Path) -> dict:
 
     out = {}
     for name, path in octree_paths(run).items():
-        r = evaluate_tree(path, cfg.data, "test", cfg.eval_views, repeats=cfg.timing_repeats)
+        r = evaluate_tree(path, cfg.data, "test", cfg.eval_views, downscale=cfg.downscale or 1.0, repeats=cfg.timing_repeats)
         tree = load_tree(path)
         resident = 4 * (tree.data.numel() + tree.child.numel())  # what the renderers hold (float32 leaves)
         out[name] = {"method": f"PlenOctree {name}", **metrics_of(r), "ms_per_frame": r["ms_per_frame"],
@@ -226,13 +272,16 @@ def run_pipeline(cfg: PipelineConfig, stop_after: str | None = None, log: Callab
     run = Path(cfg.out)
     dp = DataParallel()
     stages = [s for s in STAGES if s.method == "teacher" or s.method in cfg.methods]
+    downscale, why = resolve_downscale(cfg)
+    cfg = replace(cfg, downscale=downscale, downscale_why=why)
+    log(f"pipeline: {why}")
     settings = asdict(cfg)
     if dp.is_main:
         run.mkdir(parents=True, exist_ok=True)
         prev = run / "pipeline.json"
         if prev.is_file():
             old = json.loads(prev.read_text()).get("config", {})
-            changed = {k for k in ("data", "preset", "k", "field") if k in old and old[k] != settings[k]}
+            changed = {k for k in ("data", "preset", "k", "field", "downscale") if k in old and old[k] != settings[k]}
             if changed:
                 raise ValueError(f"{prev}: this run was made with different {', '.join(sorted(changed))}; "
                                  "use a new --out folder (or delete this one) to start over")
@@ -243,6 +292,13 @@ def run_pipeline(cfg: PipelineConfig, stop_after: str | None = None, log: Callab
         prefix = f"pipeline [{i}/{len(stages)}] {stage.name}"
         if rec is not None:
             log(f"{prefix}: done before ({rec['seconds']:.0f} s), skipped")
+            continue
+        reason = skip_reason(stage, run)
+        if reason is not None:
+            log(f"{prefix}: skipped: {reason}")
+            if dp.is_main:
+                write_json_atomic(run / "stages" / f"{stage.name}.json",
+                                  {"complete": True, "seconds": 0.0, "result": None, "skipped": reason})
             continue
         log(f"{prefix}: running (total elapsed {time.perf_counter() - t_start:.0f} s)")
         t = time.perf_counter()
@@ -276,7 +332,8 @@ def collect_results(run: Path) -> dict:
         path = run / "stages" / f"{stage.name}.json"
         if path.is_file():
             rec = json.loads(path.read_text())
-            stages[stage.name] = {"seconds": rec["seconds"], "result": rec["result"]}
+            stages[stage.name] = {"seconds": rec["seconds"], "result": rec["result"],
+                                  **({"skipped": rec["skipped"]} if rec.get("skipped") else {})}
     for name in ("teacher_eval", "octree_eval", "student_eval", "assets_eval"):
         res = stages.get(name, {}).get("result")
         if not res:

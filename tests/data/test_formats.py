@@ -148,3 +148,39 @@ def test_ply_points_ascii_binary_and_truncated(tmp_path):
     (tmp_path / "d.ply").write_text("not a ply")
     with pytest.raises(DatasetError, match="d.ply: not a PLY"):
         read_ply_points(tmp_path / "d.ply")
+
+
+def ring_poses_bounds(n: int = 16, radius: float = 4.0) -> np.ndarray:
+    """LLFF poses_bounds rows for cameras on a ring, all looking at the origin (a mip-NeRF 360 style capture)."""
+    rows = []
+    for k in range(n):
+        a = 2 * math.pi * k / n
+        centre = np.array([radius * math.cos(a), radius * math.sin(a), 0.5])
+        back = centre / np.linalg.norm(centre)  # OpenGL +Z points away from what the camera looks at
+        right = np.cross([0.0, 0.0, 1.0], back)
+        right /= np.linalg.norm(right)
+        up = np.cross(back, right)
+        pose = np.stack([-up, right, back, centre], axis=1)  # LLFF columns: [down, right, back | t]
+        hwf = np.array([[6.0], [8.0], [7.0]])
+        rows.append(np.concatenate([np.concatenate([pose, hwf], 1).reshape(-1), [1.0, 9.0]]))
+    return np.stack(rows)
+
+
+def test_scene_kind_is_decided_from_the_cameras(tmp_path, lego, fern):
+    """Fern looks one way (forward-facing recentring); a 360 capture in poses_bounds.npy form is normalised as one;
+    lego is a bounded object; each says why."""
+    info = load_dataset(fern).info()
+    assert info["scene_kind"] == "forward-facing" and info["normalization"]["method"] == "forward-facing"
+    assert "look one way" in info["scene_kind_why"]
+    root = tmp_path / "ring"
+    (root / "images").mkdir(parents=True)
+    np.save(root / "poses_bounds.npy", ring_poses_bounds())
+    for k in range(16):
+        Image.new("RGB", (8, 6), (k * 10, 0, 0)).save(root / "images" / f"{k:03d}.png")
+    ds = load_dataset(root)
+    assert ds.normalization.method == "object-centric" and "many directions" in ds.normalization.why
+    assert ds.scene_kind()[0] == "unbounded-360"
+    origins = np.stack([f.camera.origin for f in ds.frames])
+    assert np.abs(origins).max() == pytest.approx(1.0) and np.linalg.norm(origins.mean(0)[:2]) < 1e-6
+    assert load_dataset(root, normalize="forward-facing").normalization.method == "forward-facing"  # the override
+    assert load_dataset(lego).scene_kind()[0] == "object-centric"

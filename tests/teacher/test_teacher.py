@@ -123,15 +123,28 @@ def test_eval_and_render_commands(tiny_scene, tmp_path):
     assert (tmp_path / "renders" / "0000.png").is_file()
 
 
-def test_proposal_sampler_on_an_unbounded_capture(tmp_path, fox):
-    """The fox capture (transforms.json, contracted) trains with proposal sampling and renders sane values."""
+@pytest.mark.parametrize("sampler", ["grid", "proposal"])
+def test_both_unbounded_samplers_train_on_a_real_capture(tmp_path, fox, sampler):
+    """The fox capture (transforms.json, contracted) trains with the contracted occupancy grid (the default) or
+    with proposal sampling, and renders sane values."""
     cfg = tiny_config(steps=30)
     cfg.downscale = 16
     cfg.batch_rays = 128
+    cfg.hash.unbounded_sampler = sampler
+    cfg.hash.grid_resolution = 32
     cfg.hash.proposal = replace(cfg.hash.proposal, proposal_samples=16, final_samples=8, levels=3, log2_table=10)
     run = train_teacher(fox, tmp_path / "fox", cfg)
     model, *_ = load_teacher(run)
-    assert hasattr(model, "proposal") and not hasattr(model, "grid")
+    assert model.box.contracted
+    if sampler == "proposal":
+        assert hasattr(model, "proposal") and not hasattr(model, "grid")
+    else:
+        assert model.grid.contracted and not hasattr(model, "proposal")
+        assert (model.grid.density >= 0).all()  # the final refresh evaluated every cell of contracted space
+        o = torch.zeros(64, 3)
+        d = torch.nn.functional.normalize(torch.randn(64, 3, generator=torch.Generator().manual_seed(1)), dim=-1)
+        train_out = model.render_rays(o, d, None, noise=torch.rand(64, model.noise_dims))
+        assert float(model.extra_losses(train_out, None)["distortion"]) >= 0
     origins = torch.zeros(4, 3)
     dirs = torch.nn.functional.normalize(torch.randn(4, 3, generator=torch.Generator().manual_seed(0)), dim=-1)
     with torch.no_grad():

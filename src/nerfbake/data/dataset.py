@@ -14,7 +14,7 @@ from scipy.spatial import cKDTree
 from nerfbake.data.cameras import Camera
 from nerfbake.data.errors import DatasetError
 from nerfbake.data.images import load_image_uint8, to_float
-from nerfbake.data.normalization import Normalization
+from nerfbake.data.normalization import Normalization, camera_layout
 
 WHITE = (1.0, 1.0, 1.0)
 
@@ -77,10 +77,39 @@ class Dataset:
             )
         return to_float(arr, self.background, keep_alpha)
 
+    def training_frames(self) -> list[Frame]:
+        return [self.frames[i] for i in self.split("train")] if "train" in self.splits else self.frames
+
+    def scene_kind(self) -> tuple[str, str]:
+        """(kind, why): what a teacher should model, decided from the training cameras and the sparse points.
+
+        * ``object-centric``: a bounded box: a Blender scene whose cameras stand outside its box, or a capture whose
+          sparse points' box holds no camera and which its cameras surround (:func:`object_box`);
+        * ``forward-facing``: cameras that look one way (LLFF);
+        * ``unbounded-360``: everything else (cameras all around, or inside, a scene that goes on to infinity).
+        The last two are contracted."""
+        train = self.training_frames()
+        if self.format == "blender":
+            lo, hi = self.extras.get("aabb", ([-1.5] * 3, [1.5] * 3))
+            if cameras_inside(train, lo, hi):
+                return "unbounded-360", "a Blender scene whose training cameras stand inside its box (an indoor capture)"
+            return "object-centric", "a Blender scene: cameras outside its bounded box"
+        layout, why = camera_layout(np.stack([f.camera.c2w for f in train]))
+        if layout == "forward-facing":
+            return "forward-facing", why
+        if object_box(train, self.points) is not None:
+            return "object-centric", why + "; the box of the sparse points holds no camera and the cameras surround it"
+        if self.points is None or len(self.points) < 50:
+            return "unbounded-360", why + "; no sparse points to bound an object by"
+        return "unbounded-360", why + "; the cameras stand among the sparse points (a room or garden)"
+
     def info(self) -> dict:
         """The summary printed by ``nerfbake data info``."""
         cam = self.frames[0].camera
+        kind, why = self.scene_kind()
         return {
+            "scene_kind": kind,
+            "scene_kind_why": why,
             "format": self.format,
             "root": str(self.root),
             "splits": {k: len(v) for k, v in self.splits.items()},
@@ -166,6 +195,12 @@ def object_box(frames: list[Frame], points: np.ndarray | None, pad: float = 0.05
     if np.linalg.norm(to_cams.mean(0)) >= max_resultant:
         return None
     return lo, hi
+
+
+def cameras_inside(frames, lo, hi) -> bool:
+    """Whether most of these frames' cameras stand inside the box ``lo``..``hi``."""
+    origins = np.stack([f.camera.origin for f in frames])
+    return bool((((origins > np.asarray(lo)) & (origins < np.asarray(hi))).all(1)).mean() > 0.5)
 
 
 def check_downscale(downscale: float, source: Path) -> float:

@@ -194,9 +194,14 @@ def build_octree(teacher_run: str | Path, out: str | Path, cfg: BuildConfig) -> 
     """Build and save a tree; returns a summary (also written next to it as JSON)."""
     start = time.time()
     teacher, tcfg, meta, _ = load_teacher(Path(teacher_run))
+    region = "the teacher's box"
     if meta["box"].get("contracted"):
-        raise ValueError(f"{teacher_run}: the teacher is an unbounded (contracted) scene; a PlenOctree covers one bounded "
-                         "box. Train the teacher without contraction (object-centric data) or use SMERF for unbounded scenes")
+        if meta.get("dataset", {}).get("scene_kind") == "forward-facing":
+            raise ValueError(f"{teacher_run}: the teacher is a forward-facing capture; a PlenOctree covers one bounded box "
+                             "and this scene's content lies in front of its cameras out to infinity: use SMERF for it")
+        # An unbounded 360 scene: the tree covers the uncontracted core (the cube the cameras stand in, where the
+        # teacher spends its resolution); what lies beyond is drawn as the renderer's background colour.
+        region = "the unbounded scene's uncontracted core (cameras inside it); beyond it, the background colour"
     depth = cfg.depth
     lo = torch.tensor(meta["box"]["box_min"], dtype=torch.float64)
     hi = torch.tensor(meta["box"]["box_max"], dtype=torch.float64)
@@ -219,7 +224,7 @@ def build_octree(teacher_run: str | Path, out: str | Path, cfg: BuildConfig) -> 
     summary = {
         "tree": str(path), "teacher": str(teacher_run), "num_leaves": tree.num_leaves, "num_nodes": tree.num_nodes,
         "kept_voxels": int(cells.shape[0]), "depth_limit": depth, "data_format": tree.data_format,
-        "box_min": lo.tolist(), "box_max": hi.tolist(), "file_bytes": path.stat().st_size,
+        "box_min": lo.tolist(), "box_max": hi.tolist(), "region": region, "file_bytes": path.stat().st_size,
         "seconds": time.time() - start, "config": asdict(cfg), "data": meta["data"], "downscale": tcfg.downscale,
     }
     return summary

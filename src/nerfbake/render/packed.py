@@ -15,18 +15,34 @@ from nerfbake.render.quadrature import alpha_from_density
 def packed_weights(sigma: torch.Tensor, t0: torch.Tensor, t1: torch.Tensor, ray_idx: torch.Tensor, num_rays: int):
     """Weights w = T·alpha (S,) and alpha (S,) for packed intervals."""
     alpha = alpha_from_density(sigma, t1 - t0)
-    log_keep = torch.log1p(-alpha.clamp(max=1 - 1e-7)).double()
-    csum = torch.cumsum(log_keep, 0)
-    # Exclusive cumsum restarted at each ray: subtract the running total at the ray's first sample.
-    excl = csum - log_keep
-    first = torch.zeros(num_rays, dtype=torch.long, device=sigma.device)
-    if ray_idx.numel():
-        is_first = torch.ones_like(ray_idx, dtype=torch.bool)
-        is_first[1:] = ray_idx[1:] != ray_idx[:-1]
-        starts = torch.nonzero(is_first).squeeze(-1)
-        first[ray_idx[starts]] = starts
-    trans = (torch.exp(excl - excl[first[ray_idx]]) if ray_idx.numel() else excl).to(alpha.dtype)
+    log_keep = torch.log1p(-alpha.clamp(max=1 - 1e-7))
+    trans = torch.exp(packed_exclusive_cumsum(log_keep, ray_idx)).to(alpha.dtype)
     return trans * alpha, alpha
+
+
+def packed_exclusive_cumsum(values: torch.Tensor, ray_idx: torch.Tensor) -> torch.Tensor:
+    """Per-ray exclusive cumulative sum of (S,) values (0 at each ray's first sample), summed in float64."""
+    if not ray_idx.numel():
+        return values.double()
+    v = values.double()
+    excl = torch.cumsum(v, 0) - v
+    is_first = torch.ones_like(ray_idx, dtype=torch.bool)
+    is_first[1:] = ray_idx[1:] != ray_idx[:-1]
+    pos = torch.arange(ray_idx.numel(), device=ray_idx.device)
+    first = torch.cummax(torch.where(is_first, pos, torch.zeros_like(pos)), 0).values  # each sample's ray start
+    return excl - excl[first]
+
+
+def packed_distortion_loss(s0: torch.Tensor, s1: torch.Tensor, w: torch.Tensor, ray_idx: torch.Tensor,
+                           num_rays: int) -> torch.Tensor:
+    """mip-NeRF 360 eq. 15 (the O(S) form of :func:`nerfbake.render.stepfun.distortion_loss`) for packed intervals
+    in normalised distance ``s0``..``s1`` (S,), mean over ``num_rays`` rays (rays with no samples count as 0)."""
+    mid = 0.5 * (s0 + s1)
+    w_before = packed_exclusive_cumsum(w, ray_idx).to(w.dtype)
+    wm_before = packed_exclusive_cumsum(w * mid, ray_idx).to(w.dtype)
+    inter = 2 * (w * (mid * w_before - wm_before)).sum()
+    intra = (w.square() * (s1 - s0)).sum() / 3
+    return (inter + intra) / max(1, num_rays)
 
 
 def packed_sum(values: torch.Tensor, ray_idx: torch.Tensor, num_rays: int) -> torch.Tensor:

@@ -43,7 +43,8 @@ def _finish(result: dict, out_dir: Path, split: str, extra: dict) -> dict:
 
 
 def evaluate_student(student_dir: str | Path, data: str | Path | None = None, split: str = "test",
-                     max_views: int | None = None, write_images: bool = True) -> dict:
+                     max_views: int | None = None, write_images: bool = True, downscale: float | None = None) -> dict:
+    """``downscale`` None evaluates at the one the student was distilled at."""
     from nerfbake.smerf.distill import load_student, render_student_camera
     from nerfbake.teacher.train import load_teacher
     from nerfbake.train.loop import default_device
@@ -53,7 +54,7 @@ def evaluate_student(student_dir: str | Path, data: str | Path | None = None, sp
     dev = default_device()
     student.to(dev)
     teacher = load_teacher(Path(meta["teacher"]))[0].to(dev)
-    ds = load_dataset(data or meta["data"], downscale=meta.get("downscale", 1.0))
+    ds = load_dataset(data or meta["data"], downscale=downscale or meta.get("downscale", 1.0))
     out_dir = student_dir / "eval"
     result = evaluate_views(lambda cam, bg: render_student_camera(student, teacher, cam, bg), ds, split, max_views,
                             out_dir / split if write_images else None, desc="student")
@@ -73,7 +74,8 @@ def bake_record(assets: Path) -> dict:
 
 
 def evaluate_assets(assets: str | Path, data: str | Path | None = None, split: str = "test",
-                    max_views: int | None = None, write_images: bool = True, step_mult: float = 1.0) -> dict:
+                    max_views: int | None = None, write_images: bool = True, step_mult: float = 1.0,
+                    downscale: float | None = None) -> dict:
     from nerfbake.smerf.bake import viewer_camera
     from nerfbake.smerf.baked_render import render_baked
     from nerfbake.smerf.partition import Partition
@@ -84,7 +86,7 @@ def evaluate_assets(assets: str | Path, data: str | Path | None = None, split: s
     scene = SceneAssets.open(assets)
     if data is None:
         data = record.get("data")
-    ds = load_dataset(data, downscale=record.get("downscale", 1.0))
+    ds = load_dataset(data, downscale=downscale or record.get("downscale", 1.0))
     out_dir = assets.with_name(assets.name + "_eval")
 
     def render(cam, bg):

@@ -10,11 +10,11 @@ from torch import nn
 from nerfbake.fields.hash_sh import HashSHConfig, HashSHField
 from nerfbake.fields.nerf_sh import NeRFSHConfig, NeRFSHField
 from nerfbake.kernels.march import march_rays
-from nerfbake.render.packed import packed_composite, packed_weights
+from nerfbake.render.packed import packed_composite, packed_distortion_loss, packed_weights
 from nerfbake.render.quadrature import composite, weights_from_density
 from nerfbake.render.sampling import sample_pdf, stratified_t, uniform_t
 from nerfbake.render.sh import eval_sh_color, sh_basis, sh_num_coeffs
-from nerfbake.teacher.proposal import ProposalConfig, ProposalSampler, scale_gradients_by_distance
+from nerfbake.teacher.proposal import ProposalConfig, ProposalSampler, scale_gradients_by_distance, spacing
 from nerfbake.teacher.sampling import OccupancyGrid, ray_box
 
 
@@ -69,6 +69,11 @@ class HashTeacherConfig:
     # samples, to be regrown through hash collisions (textured orbit, recovered poses: occupancy 6.5% at step
     # 100, held-out 24.0 dB at 1000 steps; kept whole for 256 steps: see process_quality's figures).
     background_warmup_steps: int = 256
+    # Unbounded (contracted) scenes: "grid" marches an occupancy grid over contracted space with steps that grow
+    # as r^2 beyond the unit cube (kernels/march.py), with the distortion loss and the near-camera gradient scaling
+    # of the proposal path; "proposal" samples with a proposal network (mip-NeRF 360), 96 samples a ray.
+    unbounded_sampler: str = "grid"
+    unbounded_far: float = 1000.0  # where contracted marching stops (scene units; cameras lie in [-1, 1]^3)
     proposal: ProposalConfig = dc_field(default_factory=ProposalConfig)  # unbounded scenes
 
 
@@ -80,15 +85,6 @@ class NeRFSHTeacherConfig:
     sparsity_weight: float = 1e-3
     sparsity_length: float = 0.05
     sparsity_points: int = 10000
-
-
-def _inside_occupied(grid, x: torch.Tensor) -> torch.Tensor:
-    """True where x lies in the box and in an occupied cell of the occupancy grid."""
-    g = grid.resolution
-    u = (x - grid.box_min) / (grid.box_max - grid.box_min)
-    inside = ((u >= 0) & (u < 1)).all(-1)
-    ijk = (u.clamp(0, 1 - 1e-6) * g).long()
-    return inside & grid.occupied[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
 
 
 def _shade(field_out, dirs):
@@ -107,17 +103,24 @@ class HashTeacher(nn.Module):
         self.field = HashSHField(cfg.field, box.box_min, box.box_max, contracted=box.contracted)
         size = torch.tensor(box.box_max) - torch.tensor(box.box_min)
         self.dt = float(size.norm()) / cfg.render_steps
-        self.train_dt = self.dt  # marching step of training renders (see before_step)
-        if box.contracted:
+        if self.uses_proposal:
             lo, hi = torch.tensor(box.box_min), torch.tensor(box.box_max)
             self.proposal = ProposalSampler(cfg.proposal, (lo + hi) / 2, (hi - lo) / 2)
         else:
-            self.grid = OccupancyGrid(box.box_min, box.box_max, cfg.grid_resolution, self.dt, cfg.alpha_thresh)
+            if box.contracted:  # the grid spans contracted space, twice the box: the same steps cover it
+                self.dt = 2 * float(size.min()) * 3 ** 0.5 / cfg.render_steps
+            self.grid = OccupancyGrid(box.box_min, box.box_max, cfg.grid_resolution, self.dt, cfg.alpha_thresh,
+                                      contracted=box.contracted)
+        self.train_dt = self.dt  # marching step of training renders (see before_step)
         self.background = DirectionalBackground() if box.learned_background else None
 
     @property
     def sh_degree(self) -> int:
         return self.field.sh_degree
+
+    @property
+    def uses_proposal(self) -> bool:
+        return self.box.contracted and self.cfg.unbounded_sampler == "proposal"
 
     def query(self, x: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return self.field(x)
@@ -126,19 +129,19 @@ class HashTeacher(nn.Module):
         """sigma at points as the renderer sees the scene: zero outside a bounded scene's box and in cells its
         occupancy grid skips (the field was never fitted there, so raw values in empty cells mean nothing)."""
         sigma = self.field.density(x)
-        if self.box.contracted:
+        if self.uses_proposal:
             return sigma
-        return torch.where(_inside_occupied(self.grid, x), sigma, torch.zeros_like(sigma))
+        return torch.where(self.grid.occupied_at(x), sigma, torch.zeros_like(sigma))
 
     def before_step(self, step: int, generator: torch.Generator) -> None:
         self.train_dt = self.dt * (self.cfg.coarse_march_scale if step < self.cfg.coarse_march_steps else 1.0)
-        if not self.box.contracted and step % self.cfg.grid_update_every == 0:
+        if not self.uses_proposal and step % self.cfg.grid_update_every == 0:
             warming_up = self.background is not None and step < self.cfg.background_warmup_steps
             self.grid.update(self.field.density, generator, prune=not warming_up)
 
     def after_training(self, generator: torch.Generator, log=None) -> None:
         """Once, when the last step is done: the occupancy grid the saved teacher renders with (see refresh)."""
-        if not self.box.contracted:
+        if not self.uses_proposal:
             if log is not None:
                 log("final occupancy grid: re-evaluating every cell (~20 s on 2 cores)")
             self.grid.refresh(self.field.density, generator)
@@ -146,7 +149,7 @@ class HashTeacher(nn.Module):
     @property
     def noise_dims(self) -> int:
         """Uniform random numbers one training ray consumes (drawn by the trainer for the whole global batch)."""
-        return self.proposal.noise_dims if self.box.contracted else 1
+        return self.proposal.noise_dims if self.uses_proposal else 1
 
     def render_rays(self, origins, dirs, background=None, noise: torch.Tensor | None = None) -> dict:
         """``noise`` (R, noise_dims) in [0, 1) makes this a training render (jittered samples); None renders
@@ -154,25 +157,36 @@ class HashTeacher(nn.Module):
         of ``background``."""
         if self.background is not None:
             background = self.background(dirs)
-        if self.box.contracted:
+        if self.uses_proposal:
             return self._render_proposal(origins, dirs, background, noise)
         n = origins.shape[0]
-        t_near, t_far = ray_box(origins, dirs, self.grid.box_min, self.grid.box_max)
-        t_near = t_near.clamp_min(self.box.near)
-        t_far = t_far.clamp_max(self.box.far)
+        grid = self.grid
+        if grid.contracted:
+            t_near = torch.full((n,), float(self.box.near), device=origins.device)
+            t_far = torch.full((n,), min(self.box.far, self.cfg.unbounded_far), device=origins.device)
+            centre, half = grid.centre, grid.half
+        else:
+            t_near, t_far = ray_box(origins, dirs, grid.box_min, grid.box_max)
+            t_near = t_near.clamp_min(self.box.near)
+            t_far = t_far.clamp_max(self.box.far)
+            centre = half = None
         offset = None if noise is None else noise[:, 0]
         dt = self.train_dt if noise is not None else self.dt * self.cfg.eval_step_scale
-        ray_idx, t0, t1 = march_rays(origins, dirs, t_near, t_far, self.grid.occupied, self.grid.box_min,
-                                     self.grid.box_max, dt, offset)
+        ray_idx, t0, t1 = march_rays(origins, dirs, t_near, t_far, grid.occupied, grid.grid_min, grid.grid_max, dt,
+                                     offset, contract_centre=centre, contract_half=half)
         mid = 0.5 * (t0 + t1)
         pts = origins[ray_idx] + mid[:, None] * dirs[ray_idx]
         sigma, feat = self.field.density_and_features(pts)
+        if grid.contracted and noise is not None:
+            sigma, feat = scale_gradients_by_distance(mid, self.cfg.proposal.grad_scale_distance, sigma, feat)
         w, _ = packed_weights(sigma, t0, t1, ray_idx, n)
         seen = torch.nonzero(w.detach() > self.cfg.color_weight_thresh).squeeze(-1)
         rgb = torch.zeros(w.shape[0], 3, dtype=w.dtype, device=w.device)
         rgb = rgb.index_put((seen,), eval_sh_color(self.field.sh_coeffs(feat[seen]), dirs[ray_idx[seen]]))
         out = packed_composite(w, rgb, t0, t1, ray_idx, n, background)
         out.update(ray_idx=ray_idx, t0=t0, t1=t1, w=w, num_samples=ray_idx.numel())
+        if grid.contracted and noise is not None:
+            out["_distortion"] = (spacing(t0), spacing(t1), w, ray_idx, n)
         return out
 
     def _render_proposal(self, origins, dirs, background, noise) -> dict:
@@ -192,6 +206,8 @@ class HashTeacher(nn.Module):
         return out
 
     def extra_losses(self, out: dict, generator) -> dict[str, torch.Tensor]:
+        if "_distortion" in out:
+            return {"distortion": self.cfg.proposal.distortion_weight * packed_distortion_loss(*out["_distortion"])}
         if "_proposal" not in out:
             return {}
         s, w, proposal = out["_proposal"]

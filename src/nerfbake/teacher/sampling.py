@@ -6,6 +6,8 @@ import math
 import torch
 from torch import nn
 
+from nerfbake.render.contraction import contract, uncontract
+
 
 def ray_box(origins: torch.Tensor, dirs: torch.Tensor, box_min: torch.Tensor, box_max: torch.Tensor):
     """Slab test: (t_near, t_far) per ray, t_near clamped at 0; t_far < t_near where the ray misses."""
@@ -26,14 +28,56 @@ class OccupancyGrid(nn.Module):
     """
 
     def __init__(self, box_min, box_max, resolution: int = 128, dt: float = 0.01, alpha_thresh: float = 0.01,
-                 decay: float = 0.95, fraction: float = 1 / 8):
+                 decay: float = 0.95, fraction: float = 1 / 8, contracted: bool = False):
         super().__init__()
         self.resolution, self.dt, self.decay, self.fraction = resolution, dt, decay, fraction
+        self.contracted = contracted
         self.sigma_thresh = -math.log(1.0 - alpha_thresh) / dt
         self.register_buffer("box_min", torch.as_tensor(box_min, dtype=torch.float32))
         self.register_buffer("box_max", torch.as_tensor(box_max, dtype=torch.float32))
         self.register_buffer("density", torch.full((resolution,) * 3, -1.0))  # -1: never evaluated
         self.register_buffer("occupied", torch.ones((resolution,) * 3, dtype=torch.bool))
+
+    # Contracted grids (unbounded scenes) cover [-2, 2]^3 of the MERF contraction of q = (x - centre) / half, where
+    # ``box_min``/``box_max`` is the region kept at full resolution. A cell stores its density times the step
+    # stretch r^2 (r = ||q||_inf, at least 1): the marcher steps dt * r^2 there (kernels/march.py), so the stored
+    # value over the threshold means the same alpha per step everywhere.
+
+    @property
+    def centre(self) -> torch.Tensor:
+        return (self.box_min + self.box_max) / 2
+
+    @property
+    def half(self) -> torch.Tensor:
+        return (self.box_max - self.box_min) / 2
+
+    @property
+    def grid_min(self) -> torch.Tensor:
+        """Lower corner of the space the cells tile: the box, or -2 in contracted space."""
+        return torch.full_like(self.box_min, -2.0) if self.contracted else self.box_min
+
+    @property
+    def grid_max(self) -> torch.Tensor:
+        return torch.full_like(self.box_max, 2.0) if self.contracted else self.box_max
+
+    def to_grid_space(self, x: torch.Tensor) -> torch.Tensor:
+        """World points (N, 3) -> the space the cells tile (identity for a bounded grid)."""
+        return contract((x - self.centre) / self.half) if self.contracted else x
+
+    def step_stretch(self, x: torch.Tensor) -> torch.Tensor:
+        """How much longer than dt the marcher's step is at world points x (N,): max(1, r^2) contracted, else 1."""
+        if not self.contracted:
+            return torch.ones(x.shape[0], device=x.device)
+        return ((x - self.centre) / self.half).abs().amax(-1).clamp_min(1.0).square()
+
+    def occupied_at(self, x: torch.Tensor) -> torch.Tensor:
+        """True where world points x (N, 3) fall in an occupied cell (and, bounded, inside the box)."""
+        g = self.resolution
+        lo, hi = self.grid_min, self.grid_max
+        u = (self.to_grid_space(x) - lo) / (hi - lo)
+        inside = ((u >= 0) & (u < 1)).all(-1)
+        ijk = (u.clamp(0, 1 - 1e-6) * g).long()
+        return inside & self.occupied[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
 
     def cells_to_update(self, generator: torch.Generator) -> torch.Tensor:
         """Sorted, unique flat indices (CPU) of the cells the next update evaluates (random draws with repeats
@@ -44,15 +88,21 @@ class OccupancyGrid(nn.Module):
         return torch.unique(torch.randint(0, n, (int(n * self.fraction),), generator=generator))
 
     def cell_centres(self, flat_idx: torch.Tensor, jitter: torch.Tensor) -> torch.Tensor:
+        """World points at ``jitter`` (N, 3) in [0, 1) inside the listed cells."""
         g = self.resolution
         ijk = torch.stack([flat_idx // (g * g), (flat_idx // g) % g, flat_idx % g], dim=-1).float()
-        return self.box_min + (ijk + jitter) * (self.box_max - self.box_min) / g
+        p = self.grid_min + (ijk + jitter) * (self.grid_max - self.grid_min) / g
+        if self.contracted:
+            p = self.centre + self.half * uncontract(p.clamp(-2 + 1e-4, 2 - 1e-4))
+        return p
 
     def _density_at_jitter(self, density_fn, idx: torch.Tensor, jitter: torch.Tensor, chunk: int) -> torch.Tensor:
-        """Density at one jittered point per listed cell (idx and jitter on the grid's device)."""
+        """Density (times the step stretch, see above) at one jittered point per listed cell (idx and jitter on the
+        grid's device)."""
         new = torch.empty(idx.numel(), device=idx.device)
         for s in range(0, idx.numel(), chunk):
-            new[s: s + chunk] = density_fn(self.cell_centres(idx[s: s + chunk], jitter[s: s + chunk])).float().view(-1)
+            x = self.cell_centres(idx[s: s + chunk], jitter[s: s + chunk])
+            new[s: s + chunk] = density_fn(x).float().view(-1) * self.step_stretch(x)
         return new
 
     @torch.no_grad()

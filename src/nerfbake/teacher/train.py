@@ -28,44 +28,41 @@ CONFIG = "config.json"
 
 
 def scene_box(ds: Dataset) -> SceneBox:
-    """The region the teacher models. Blender scenes live in [-1.5, 1.5]^3 between near 2 and far 6 (unless their
-    transforms give ``aabb``/``near``/``far``, as nerfbake's indoor synthetic scenes do). Other captures are
-    normalised so cameras lie in [-1, 1]^3.
+    """The region the teacher models, from :meth:`Dataset.scene_kind`. Blender scenes live in [-1.5, 1.5]^3 between
+    near 2 and far 6 (unless their transforms give ``aabb``/``near``/``far``, as nerfbake's indoor synthetic scenes
+    do). Other captures are normalised so cameras lie in [-1, 1]^3.
 
     * Object-centred captures with sparse points (cameras around, outside the points' box: ``object_box``) are
       modelled inside that box with the occupancy grid, like Blender scenes, and rays leaving it end on a learned
       directional background. Contracted, such a capture is explained by screens in front of each camera, which
       no other camera sees (the synthetic textured scene, 32 views, 1000 steps: 11 dB on held-out views).
-    * Everything else is covered at full resolution in [-1, 1]^3, with the contraction taking in everything beyond.
+    * Everything else (forward-facing, unbounded 360°, and Blender scenes whose cameras stand inside their box) is
+      covered at full resolution in the box ([-1, 1]^3 for real captures), with the contraction taking in
+      everything beyond.
 
     The near plane is 0.9 x the near bound of the sparse points (LLFF's rule) where the dataset has one: space in
     front of it is seen by one camera alone, and a contracted teacher left to use it explains each view with a
     screen there (lego as an opaque capture, 1000 steps: 8.7 dB held-out with near 0.01, 16.5 with near at 0.45
     normalised)."""
-    train_frames = [ds.frames[i] for i in ds.split("train")] if "train" in ds.splits else ds.frames
+    kind, _ = ds.scene_kind()
     if ds.format == "blender":
         near, far = ds.bounds or (2.0, 6.0)
         lo, hi = ds.extras.get("aabb", ([-1.5] * 3, [1.5] * 3))
-        if cameras_inside(train_frames, lo, hi):
+        if kind != "object-centric":
             return SceneBox(list(lo), list(hi), near, 1e10, contracted=True)
         return SceneBox(list(lo), list(hi), near, far)
     near = 0.01 if ds.bounds is None else max(0.01, 0.9 * ds.bounds[0])
-    box = object_box(train_frames, ds.points)
-    if box is not None:
-        return SceneBox([float(v) for v in box[0]], [float(v) for v in box[1]], near, 1e10, learned_background=True)
+    if kind == "object-centric":
+        lo, hi = object_box(ds.training_frames(), ds.points)
+        return SceneBox([float(v) for v in lo], [float(v) for v in hi], near, 1e10, learned_background=True)
     return SceneBox([-1.0] * 3, [1.0] * 3, near, 1e10, contracted=True)
-
-
-def cameras_inside(frames, lo, hi) -> bool:
-    """Whether most of these frames' cameras stand inside the box ``lo``..``hi``."""
-    origins = np.stack([f.camera.origin for f in frames])
-    return bool((((origins > np.asarray(lo)) & (origins < np.asarray(hi))).all(1)).mean() > 0.5)
 
 
 def config_from_dict(d: dict) -> TeacherTrainConfig:
     d = dict(d)
     h, n = d.pop("hash"), d.pop("nerf_sh")
     prop = ProposalConfig(**h.pop("proposal")) if "proposal" in h else ProposalConfig()
+    h.setdefault("unbounded_sampler", "proposal")  # runs made before the contracted occupancy grid
     hash_cfg = HashTeacherConfig(field=HashSHConfig(**h.pop("field")), proposal=prop, **h)
     nerf_cfg = NeRFSHTeacherConfig(field=NeRFSHConfig(**n.pop("field")), **n)
     return TeacherTrainConfig(hash=hash_cfg, nerf_sh=nerf_cfg, **d)

@@ -48,7 +48,7 @@ def read_blender(root: Path, downscale: float = 1.0, background=WHITE) -> Datase
             cam = Camera(pose_of(fr, path, i), w, h, focal, focal, w / 2.0, h / 2.0, "PINHOLE")
             frames.append(Frame(name=f"{split}/{image_path.stem}", image_path=image_path, camera=cam))
         splits[split] = list(range(start, len(frames)))
-    norm = Normalization()
+    norm = Normalization(why="Blender scenes keep their own frame")
     frames = finish_frames(frames, norm, downscale)
     bounds, extras = (2.0, 6.0), {}
     if "near" in meta and "far" in meta:  # optional keys (nerfbake synth's indoor scenes write them)

@@ -2,7 +2,7 @@
 
 World-to-camera OpenCV poses become OpenGL c2w; camera models SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, RADIAL
 and OPENCV are supported (others are refused by name). Images live in ``images/`` (``images_F/`` for a
-matching downscale). Test views: every 8th of the sorted names. Normalisation: object-centric by default.
+matching downscale). Test views: every 8th of the sorted names. Normalisation: ``auto`` (forward-facing or 360° from the cameras).
 """
 from __future__ import annotations
 
@@ -46,7 +46,7 @@ def colmap_camera(cam, source: Path) -> tuple[float, float, float, float, dict, 
     return fx, fy, cx, cy, dist, model
 
 
-def read_colmap(root: Path, downscale: float = 1.0, normalize: str = "object-centric") -> Dataset:
+def read_colmap(root: Path, downscale: float = 1.0, normalize: str = "auto") -> Dataset:
     import pycolmap
 
     root = Path(root)
@@ -83,9 +83,10 @@ def read_colmap(root: Path, downscale: float = 1.0, normalize: str = "object-cen
             base = base.scaled(float(folder.name.split("_")[-1]))
         frames.append(Frame(name=im.name, image_path=path, camera=base))
         c2ws.append(c2w)
-    norm = choose_normalization(normalize, np.stack(c2ws), root)
-    frames = finish_frames(frames, norm, load_factor)
     pts = np.stack([p.xyz for p in rec.points3D.values()]) if rec.num_points3D() > 0 else np.zeros((0, 3))
+    raw_bounds = depth_bounds(frames, pts)  # forward-facing recentring scales by the nearest depth
+    norm = choose_normalization(normalize, np.stack(c2ws), root, near=None if raw_bounds is None else raw_bounds[0])
+    frames = finish_frames(frames, norm, load_factor)
     pts = norm.apply_to_points(pts)
     bounds = depth_bounds(frames, pts)
     return Dataset("colmap", root, frames, every_nth_split([f.name for f in frames]), norm, bounds=bounds,

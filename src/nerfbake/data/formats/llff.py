@@ -2,8 +2,8 @@
 
 Images come from ``images_F/`` when that folder matches the requested downscale F (the focal is scaled by
 F), otherwise from ``images/`` with on-load downscaling. Test views: every 8th of the sorted names.
-Normalisation: ``forward-facing`` (NeRF's recentring with bd_factor 0.75; use NDC rays) or ``object-centric``
-(360° captures).
+Normalisation ``auto``: ``forward-facing`` (NeRF's recentring with bd_factor 0.75) when the cameras look one way,
+else ``object-centric`` (360° captures such as mip-NeRF 360's, which ship in this form too).
 """
 from __future__ import annotations
 
@@ -50,7 +50,7 @@ def pick_image_folder(root: Path, downscale: float) -> tuple[Path, float, float]
     return available[factor], effective / factor, effective
 
 
-def read_llff(root: Path, downscale: float = 1.0, normalize: str = "forward-facing") -> Dataset:
+def read_llff(root: Path, downscale: float = 1.0, normalize: str = "auto") -> Dataset:
     root = Path(root)
     downscale = check_downscale(downscale, root)
     pb_path = root / "poses_bounds.npy"

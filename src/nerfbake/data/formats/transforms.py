@@ -2,7 +2,7 @@
 
 Intrinsics: fl_x/fl_y (or camera_angle_x/y), cx, cy, w, h, distortion k1 k2 k3 p1 p2; per-frame values
 override the top-level ones. Splits: ``train_filenames``/``val_filenames``/``test_filenames`` when present,
-otherwise every 8th of the sorted names. ``aabb_scale`` is kept in the extras. Object-centric normalisation.
+otherwise every 8th of the sorted names. ``aabb_scale`` is kept in the extras. Normalisation ``auto`` (forward-facing or 360° from the cameras).
 Near/far bounds come from the sparse point cloud of ``ply_file_path`` (nerfstudio's key; ``nerfbake process``
 writes it) when there is one: the teacher's near plane then keeps it from explaining each view with floaters
 just in front of its camera.
@@ -60,7 +60,7 @@ def _intrinsics(fields: dict, path: Path, where: str, image_path: Path) -> Camer
                   {k: v for k, v in dist.items() if v})
 
 
-def read_transforms(root: Path, downscale: float = 1.0, normalize: str = "object-centric") -> Dataset:
+def read_transforms(root: Path, downscale: float = 1.0, normalize: str = "auto") -> Dataset:
     root = Path(root)
     downscale = check_downscale(downscale, root)
     path = root / "transforms.json"
@@ -83,13 +83,17 @@ def read_transforms(root: Path, downscale: float = 1.0, normalize: str = "object
         frames.append(Frame(name=str(fr["file_path"]), image_path=image_path,
                             camera=Camera(c2w, cam.width, cam.height, cam.fx, cam.fy, cam.cx, cam.cy, cam.model, dict(cam.distortion))))
     c2ws = np.stack([f.camera.c2w for f in frames])
-    norm = choose_normalization(normalize, c2ws, root)
+    raw_points = raw_bounds = None
+    if meta.get("ply_file_path") and (root / meta["ply_file_path"]).is_file():
+        raw_points = read_ply_points(root / meta["ply_file_path"])
+        raw_bounds = depth_bounds(frames, raw_points)  # forward-facing recentring scales by the nearest depth
+    norm = choose_normalization(normalize, c2ws, root, near=None if raw_bounds is None else raw_bounds[0])
     frames = finish_frames(frames, norm, downscale)
     splits = _explicit_splits(meta, frames, path) or every_nth_split([f.name for f in frames])
     extras = {k: meta[k] for k in ("aabb_scale", "scale", "offset") if k in meta}
     bounds = points = None
-    if meta.get("ply_file_path") and (root / meta["ply_file_path"]).is_file():
-        points = norm.apply_to_points(read_ply_points(root / meta["ply_file_path"]))
+    if raw_points is not None:
+        points = norm.apply_to_points(raw_points)
         bounds = depth_bounds(frames, points)
     return Dataset("transforms", root, frames, splits, norm, bounds=bounds, background=None, downscale=downscale,
                    extras=extras, points=points)
