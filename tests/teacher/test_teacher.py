@@ -125,8 +125,8 @@ def test_eval_and_render_commands(tiny_scene, tmp_path):
 
 @pytest.mark.parametrize("sampler", ["grid", "proposal"])
 def test_both_unbounded_samplers_train_on_a_real_capture(tmp_path, fox, sampler):
-    """The fox capture (transforms.json, contracted) trains with the contracted occupancy grid (the default) or
-    with proposal sampling, and renders sane values."""
+    """The fox capture (transforms.json, contracted) trains with proposal sampling (the default) or with the
+    occupancy grid over contracted space, and renders sane values."""
     cfg = tiny_config(steps=30)
     cfg.downscale = 16
     cfg.batch_rays = 128

@@ -69,11 +69,22 @@ class HashTeacherConfig:
     # samples, to be regrown through hash collisions (textured orbit, recovered poses: occupancy 6.5% at step
     # 100, held-out 24.0 dB at 1000 steps; kept whole for 256 steps: see process_quality's figures).
     background_warmup_steps: int = 256
-    # Unbounded (contracted) scenes: "grid" marches an occupancy grid over contracted space with steps that grow
-    # as r^2 beyond the unit cube (kernels/march.py), with the distortion loss and the near-camera gradient scaling
-    # of the proposal path; "proposal" samples with a proposal network (mip-NeRF 360), 96 samples a ray.
-    unbounded_sampler: str = "grid"
+    # Unbounded (contracted) scenes: "proposal" samples with a proposal network (mip-NeRF 360: 64 proposal and 32
+    # final samples a ray); "grid" marches an occupancy grid over contracted space with steps that grow as r^2
+    # beyond the unit cube (kernels/march.py), with the distortion loss and near-camera gradient scaling of the
+    # proposal path. The grid is not the default: on fern a real scene's rays all end on a surface and the grid
+    # cannot skip what lies behind it, so after its coarse warm-up it marches ~60 samples a ray and trains slower
+    # than the proposal path (benchmarks/unbounded_speed.py).
+    unbounded_sampler: str = "proposal"
     unbounded_far: float = 1000.0  # where contracted marching stops (scene units; cameras lie in [-1, 1]^3)
+    # Real captures have no empty background: every ray ends on a surface, and the grid cannot skip what lies
+    # behind it (~60 marched samples a ray on fern). Training renders of contracted scenes therefore first take
+    # the density of every marched sample without gradients, then keep for the gradient pass only the samples
+    # before the transmittance falls below ``early_stop_transmittance`` whose alpha reaches ``cull_alpha``
+    # (nerfacc's estimator does the same); the composite of the kept samples differs from the full one by less
+    # than those bounds.
+    early_stop_transmittance: float = 1e-4
+    cull_alpha: float = 1e-4
     proposal: ProposalConfig = dc_field(default_factory=ProposalConfig)  # unbounded scenes
 
 
@@ -174,6 +185,8 @@ class HashTeacher(nn.Module):
         dt = self.train_dt if noise is not None else self.dt * self.cfg.eval_step_scale
         ray_idx, t0, t1 = march_rays(origins, dirs, t_near, t_far, grid.occupied, grid.grid_min, grid.grid_max, dt,
                                      offset, contract_centre=centre, contract_half=half)
+        if grid.contracted and noise is not None:
+            ray_idx, t0, t1 = self._cull(origins, dirs, ray_idx, t0, t1, n)
         mid = 0.5 * (t0 + t1)
         pts = origins[ray_idx] + mid[:, None] * dirs[ray_idx]
         sigma, feat = self.field.density_and_features(pts)
@@ -189,6 +202,18 @@ class HashTeacher(nn.Module):
             out["_distortion"] = (spacing(t0), spacing(t1), w, ray_idx, n)
         return out
 
+    @torch.no_grad()
+    def _cull(self, origins, dirs, ray_idx, t0, t1, n):
+        """The marched samples worth a gradient pass (see ``early_stop_transmittance``)."""
+        if not ray_idx.numel():
+            return ray_idx, t0, t1
+        pts = origins[ray_idx] + (0.5 * (t0 + t1))[:, None] * dirs[ray_idx]
+        sigma = torch.cat([self.field.density(pts[s: s + (1 << 18)]) for s in range(0, pts.shape[0], 1 << 18)])
+        w, alpha = packed_weights(sigma, t0, t1, ray_idx, n)
+        trans = w / alpha.clamp_min(1e-12)
+        keep = torch.nonzero((trans > self.cfg.early_stop_transmittance) & (alpha >= self.cfg.cull_alpha)).squeeze(-1)
+        return ray_idx[keep], t0[keep], t1[keep]
+
     def _render_proposal(self, origins, dirs, background, noise) -> dict:
         r = origins.shape[0]
         near = torch.full((r,), float(self.box.near), device=origins.device)
@@ -196,9 +221,12 @@ class HashTeacher(nn.Module):
         mid = 0.5 * (t[:, 1:] + t[:, :-1])
         pts = origins[:, None] + mid[..., None] * dirs[:, None]
         k = mid.shape[1]
-        sigma, rgb = _shade(self.field(pts.reshape(-1, 3)), dirs[:, None].expand(-1, k, -1).reshape(-1, 3))
-        sigma, rgb = scale_gradients_by_distance(mid.reshape(-1), self.cfg.proposal.grad_scale_distance, sigma, rgb)
+        sigma, feat = self.field.density_and_features(pts.reshape(-1, 3))
+        sigma, feat = scale_gradients_by_distance(mid.reshape(-1), self.cfg.proposal.grad_scale_distance, sigma, feat)
         w, _ = weights_from_density(sigma.view(r, k), t)
+        seen = torch.nonzero(w.detach().reshape(-1) > self.cfg.color_weight_thresh).squeeze(-1)  # as the grid path
+        rgb = torch.zeros(r * k, 3, dtype=w.dtype, device=w.device)
+        rgb = rgb.index_put((seen,), eval_sh_color(self.field.sh_coeffs(feat[seen]), dirs[seen // k]))
         out = composite(w, rgb.view(r, k, 3), background, t)
         out.update(ray_idx=torch.arange(r, device=origins.device).repeat_interleave(k), t0=t[:, :-1].reshape(-1), t1=t[:, 1:].reshape(-1),
                    w=w.reshape(-1), num_samples=r * (k + self.cfg.proposal.proposal_samples))
