@@ -287,6 +287,7 @@ def run_pipeline(cfg: PipelineConfig, stop_after: str | None = None, log: Callab
                                  "use a new --out folder (or delete this one) to start over")
         write_json_atomic(prev, {"config": settings, "stages": [s.name for s in stages]})
     t_start = time.perf_counter()
+    said = set()  # methods whose skip reason was printed
     for i, stage in enumerate(stages, 1):
         rec = stage_record(run, stage.name)
         prefix = f"pipeline [{i}/{len(stages)}] {stage.name}"
@@ -295,7 +296,8 @@ def run_pipeline(cfg: PipelineConfig, stop_after: str | None = None, log: Callab
             continue
         reason = skip_reason(stage, run)
         if reason is not None:
-            log(f"{prefix}: skipped: {reason}")
+            log(f"{prefix}: skipped" + (f" (the {stage.method} route, above)" if stage.method in said else f": {reason}"))
+            said.add(stage.method)
             if dp.is_main:
                 write_json_atomic(run / "stages" / f"{stage.name}.json",
                                   {"complete": True, "seconds": 0.0, "result": None, "skipped": reason})

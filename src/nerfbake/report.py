@@ -129,6 +129,14 @@ def write_report(run: str | Path) -> Path:
     lines = [f"# nerfbake report: {run.name}", "",
              f"Data `{cfg.get('data')}`, preset `{cfg.get('preset')}`, K = {cfg.get('k')}, "
              f"{rows[0]['num_views'] if rows else 0} test views, git `{results.get('git')}`.", ""]
+    if cfg.get("downscale_why"):
+        lines += [f"Images: {cfg['downscale_why']}.", ""]
+    skipped = {}
+    for name, rec in results.get("stages", {}).items():
+        if rec.get("skipped"):
+            skipped.setdefault(rec["skipped"], []).append(name)
+    for reason, names in skipped.items():
+        lines += [f"Skipped ({', '.join(names)}): {reason}.", ""]
     if rows:
         net = rows[0].get("lpips_net", "vgg")
         lines += [f"| method | PSNR ↑ | SSIM ↑ | LPIPS ({net}) ↓ | FPS | ms/frame | memory MB | disk MB |",
@@ -151,7 +159,8 @@ def write_report(run: str | Path) -> Path:
         lines += ["Training curves:", "", "![training curves](report/training.png)", ""]
     stages = results.get("stages", {})
     if stages:
-        lines += ["| stage | seconds |", "|---|---:|"] + [f"| {k} | {v['seconds']:.0f} |" for k, v in stages.items()] + [""]
+        seconds = {k: "skipped" if v.get("skipped") else f"{v['seconds']:.0f}" for k, v in stages.items()}
+        lines += ["| stage | seconds |", "|---|---:|"] + [f"| {k} | {v} |" for k, v in seconds.items()] + [""]
     cmds = view_commands(run, results)
     if cmds:
         lines += ["Open the results in a browser:", "", "```bash", *cmds, "```", ""]

@@ -3,6 +3,7 @@ backward (vs autograd and finite differences), compression, building from a teac
 import json
 import math
 import zipfile
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -321,3 +322,22 @@ def test_octree_eval_and_info_print_the_contract_keys(fixtures, tiny_scene, tmp_
     assert main(["octree", "render", "--tree", str(tree), "--pose-file", str(tmp_path / "poses.json"),
                  "--out", str(tmp_path / "r"), "--sh-range", "0,1", "--depth"]) == 0
     assert (tmp_path / "r" / "0000.png").is_file() and np.load(tmp_path / "r" / "0000_depth.npy").shape == (16, 24)
+
+
+def test_an_unbounded_360_teacher_builds_a_tree_over_its_core_and_a_forward_facing_one_is_refused(tmp_path, fox, fern):
+    """Real captures: the octree route covers the uncontracted core of a 360 capture (the cube its cameras stand in);
+    a forward-facing capture has no box to cover and gets a clear refusal naming SMERF."""
+    from nerfbake.teacher.train import train_teacher
+    from tests.helpers import tiny_config
+
+    cfg = replace(tiny_config(steps=20), checkpoint_every=1000, val_every=10_000, batch_rays=128)
+    cfg.hash.proposal = replace(cfg.hash.proposal, proposal_samples=16, final_samples=8, levels=3, log2_table=10)
+    fox_cfg = replace(cfg, downscale=16)
+    fox_run = train_teacher(fox, tmp_path / "fox", fox_cfg)
+    summary = build_octree(fox_run, tmp_path / "fox.npz", BuildConfig(grid=32, samples_per_leaf=2, autoscale_grid=16,
+                                                                      weight_thresh=0.01))
+    assert "core" in summary["region"] and summary["num_leaves"] > 0
+    assert min(summary["box_min"]) >= -1 and max(summary["box_max"]) <= 1
+    fern_run = train_teacher(fern, tmp_path / "fern", replace(cfg, steps=2))
+    with pytest.raises(ValueError, match="forward-facing.*SMERF"):
+        build_octree(fern_run, tmp_path / "fern.npz", BuildConfig(grid=32, samples_per_leaf=2, autoscale_grid=16))

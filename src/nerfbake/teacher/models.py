@@ -72,9 +72,9 @@ class HashTeacherConfig:
     # Unbounded (contracted) scenes: "proposal" samples with a proposal network (mip-NeRF 360: 64 proposal and 32
     # final samples a ray); "grid" marches an occupancy grid over contracted space with steps that grow as r^2
     # beyond the unit cube (kernels/march.py), with the distortion loss and near-camera gradient scaling of the
-    # proposal path. The grid is not the default: on fern a real scene's rays all end on a surface and the grid
-    # cannot skip what lies behind it, so after its coarse warm-up it marches ~60 samples a ray and trains slower
-    # than the proposal path (benchmarks/unbounded_speed.py).
+    # proposal path. The grid is not the default: a real scene's rays all end on a surface and the grid cannot skip
+    # what lies behind it (fern: ~15-19 samples a ray in the 4x-coarse warm-up, ~4x that after it); it has not been
+    # measured faster than the proposal path yet (benchmarks/unbounded_speed.py compares them).
     unbounded_sampler: str = "proposal"
     unbounded_far: float = 1000.0  # where contracted marching stops (scene units; cameras lie in [-1, 1]^3)
     # Real captures have no empty background: every ray ends on a surface, and the grid cannot skip what lies
