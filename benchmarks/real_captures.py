@@ -3,7 +3,7 @@
 stage times, peak memory and disk, plus one picture per scene (ground truth | teacher | octree | SMERF baked).
 
     python benchmarks/real_captures.py --work outputs/real [--scenes bonsai,fern,fox,phone]
-        [--bonsai-images 150] [--downscale bonsai=2] [--teacher-steps N] [--distill-steps N] [--eval-views 25]
+        [--bonsai-images 100] [--downscale bonsai=2] [--teacher-steps N] [--distill-steps N] [--eval-views 25]
 
 Scenes (``../shared/data``): bonsai_800 (292 photos, no poses; every 8th photo held out), fern (LLFF images_8),
 fox (instant-ngp transforms.json), phone (phone_video/beer.mp4 through ``process --video``). Finished work in
@@ -40,7 +40,7 @@ def run(cmd: list[str], log: Path) -> float:
 
 def processed(name: str, source: list[str], work: Path, log: Path) -> tuple[Path, dict]:
     """The dataset ``nerfbake process`` makes from ``source`` (reused when already there) and its report."""
-    out = work / f"{name}_data"
+    out = work / f"{name}_data"  # reused when there: delete it to process again with other options
     if not (out / "process_report.json").is_file():
         if out.exists():
             shutil.rmtree(out)
@@ -63,7 +63,8 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--work", default="outputs/real_captures")
     ap.add_argument("--scenes", default="bonsai,fern,fox,phone")
-    ap.add_argument("--bonsai-images", type=int, default=150, help="an even subset of bonsai_800's 292 photos")
+    ap.add_argument("--bonsai-images", type=int, default=100,
+                    help="an even subset of bonsai_800's 292 photos (SfM time grows fast with it: 100 took ~6 min)")
     ap.add_argument("--downscale", default="bonsai=2", help="per-scene downscale, e.g. bonsai=2,fox=4 (others: automatic)")
     ap.add_argument("--teacher-steps", type=int)
     ap.add_argument("--distill-steps", type=int)

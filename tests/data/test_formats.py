@@ -184,3 +184,16 @@ def test_scene_kind_is_decided_from_the_cameras(tmp_path, lego, fern):
     assert np.abs(origins).max() == pytest.approx(1.0) and np.linalg.norm(origins.mean(0)[:2]) < 1e-6
     assert load_dataset(root, normalize="forward-facing").normalization.method == "forward-facing"  # the override
     assert load_dataset(lego).scene_kind()[0] == "object-centric"
+
+
+def test_depth_bounds_count_only_the_points_a_camera_sees(tmp_path):
+    """A point beside the camera (in front of it, outside its image) must not pull the near bound to ~0."""
+    from nerfbake.data.cameras import Camera
+    from nerfbake.data.dataset import Frame, depth_bounds
+
+    frame = Frame("a.png", tmp_path / "a.png", Camera(np.eye(4), 64, 48, 50.0, 50.0, 32.0, 24.0, "PINHOLE"))
+    seen = np.stack([np.array([0.0, 0.0, -2.0 - 0.01 * k]) for k in range(100)])  # straight ahead, 2 to 3 away
+    beside = np.array([[5.0, 0.0, -0.01]])  # depth 0.01, far outside the 64x48 image
+    near, far = depth_bounds([frame], np.concatenate([seen, beside]))
+    assert 2.0 <= near < 2.01 and far <= 3.0
+    assert depth_bounds([frame], beside) is None

@@ -154,12 +154,19 @@ def finish_frames(
 
 
 def depth_bounds(frames: list[Frame], points: np.ndarray) -> tuple[float, float] | None:
-    """(near, far) of a scene from its sparse points (normalised frame): the 0.1 and 99.9 percentiles of their
-    depths in front of (a sample of) the cameras, as LLFF's poses_bounds. None without points in front."""
+    """(near, far) of a scene from its sparse points (normalised frame): the 0.1 and 99.9 percentiles of the depths
+    of the points (a sample of) the cameras see, in front of them and inside their image, as LLFF's poses_bounds
+    (which takes each image's own points). Counting the points beside a camera, outside its view, put bonsai's
+    near bound at 0.006 (cameras on a unit ring; 0.68 counting only what each camera sees). None without such points."""
     if len(points) == 0:
         return None
-    d = np.concatenate([f.camera.project(points)[1] for f in frames[:: max(1, len(frames) // 20)]])
-    d = d[d > 0]
+    depths = []
+    for f in frames[:: max(1, len(frames) // 20)]:
+        uv, d = f.camera.project(points)
+        with np.errstate(invalid="ignore"):
+            seen = (d > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < f.camera.width) & (uv[:, 1] >= 0) & (uv[:, 1] < f.camera.height)
+        depths.append(d[seen])
+    d = np.concatenate(depths)
     return (float(np.percentile(d, 0.1)), float(np.percentile(d, 99.9))) if d.size else None
 
 
