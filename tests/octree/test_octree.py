@@ -338,6 +338,9 @@ def test_an_unbounded_360_teacher_builds_a_tree_over_its_core_and_a_forward_faci
                                                                       weight_thresh=0.01))
     assert "core" in summary["region"] and summary["num_leaves"] > 0
     assert min(summary["box_min"]) >= -1 and max(summary["box_max"]) <= 1
+    # fox has train and test only: fine-tuning picks its best epoch on training views, never on the test views
+    res = optimize_tree(tmp_path / "fox.npz", fox, tmp_path / "fox_opt.npz", OptimizeConfig(epochs=1, downscale=16, val_views=2))
+    assert res["val_split"] == "train" and (tmp_path / "fox_opt.npz").is_file()
     fern_run = train_teacher(fern, tmp_path / "fern", replace(cfg, steps=2))
     with pytest.raises(ValueError, match="forward-facing.*SMERF"):
         build_octree(fern_run, tmp_path / "fern.npz", BuildConfig(grid=32, samples_per_leaf=2, autoscale_grid=16))

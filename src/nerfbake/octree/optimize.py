@@ -74,7 +74,10 @@ def optimize_tree(tree_path: str | Path, data: str | Path, out: str | Path, cfg:
     train = ds.split("train")
     if not train:
         raise ValueError(f"{data}: no training views to fine-tune on")
-    val = pick_views(ds.split("val") or ds.split("test"), cfg.val_views)
+    # Captures without a validation split (LLFF, COLMAP, transforms.json: train and test only) select the best epoch
+    # on training views: choosing it on the test views would leak them into the figures reported on them.
+    val_split = "val" if "val" in ds.splits else "train"
+    val = pick_views(ds.split(val_split), cfg.val_views)
     bg = tuple(ds.background or (1.0, 1.0, 1.0))
     opts = RenderOptions.training(background=bg)
     gen = torch.Generator().manual_seed(cfg.seed)
@@ -104,4 +107,5 @@ def optimize_tree(tree_path: str | Path, data: str | Path, out: str | Path, cfg:
     tree.data.copy_(best)
     path = save_tree(tree, out)
     return {"tree": str(path), "source": str(tree_path), "best_epoch": best_epoch, "best_val_psnr": best_psnr,
+            "val_split": val_split,
             "history": history, "seconds": time.time() - start, "config": asdict(cfg), "file_bytes": path.stat().st_size}
