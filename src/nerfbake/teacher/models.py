@@ -185,12 +185,13 @@ class HashTeacher(nn.Module):
         dt = self.train_dt if noise is not None else self.dt * self.cfg.eval_step_scale
         ray_idx, t0, t1 = march_rays(origins, dirs, t_near, t_far, grid.occupied, grid.grid_min, grid.grid_max, dt,
                                      offset, contract_centre=centre, contract_half=half)
-        if grid.contracted and noise is not None:
+        contracted_training = grid.contracted and noise is not None  # culled, scaled, distortion-regularised
+        if contracted_training:
             ray_idx, t0, t1 = self._cull(origins, dirs, ray_idx, t0, t1, n)
         mid = 0.5 * (t0 + t1)
         pts = origins[ray_idx] + mid[:, None] * dirs[ray_idx]
         sigma, feat = self.field.density_and_features(pts)
-        if grid.contracted and noise is not None:
+        if contracted_training:
             sigma, feat = scale_gradients_by_distance(mid, self.cfg.proposal.grad_scale_distance, sigma, feat)
         w, _ = packed_weights(sigma, t0, t1, ray_idx, n)
         seen = torch.nonzero(w.detach() > self.cfg.color_weight_thresh).squeeze(-1)
@@ -198,7 +199,7 @@ class HashTeacher(nn.Module):
         rgb = rgb.index_put((seen,), eval_sh_color(self.field.sh_coeffs(feat[seen]), dirs[ray_idx[seen]]))
         out = packed_composite(w, rgb, t0, t1, ray_idx, n, background)
         out.update(ray_idx=ray_idx, t0=t0, t1=t1, w=w, num_samples=ray_idx.numel())
-        if grid.contracted and noise is not None:
+        if contracted_training:
             out["_distortion"] = (spacing(t0), spacing(t1), w, ray_idx, n)
         return out
 
