@@ -174,7 +174,7 @@ def cmd_teacher_train(args) -> int:
         cfg = config_from_dict(d.get("train", d))  # a run's config.json or a bare training config
     else:
         cfg = preset(args.field, args.preset)
-    cfg = _override(cfg, args, ("steps", "batch_rays", "downscale"))
+    cfg = _override(cfg, args, ("steps", "batch_rays", "downscale", "appearance"))
     cfg.seed = args.seed
     if args.tensorboard:
         cfg.tensorboard = True
@@ -465,6 +465,9 @@ def build_parser() -> argparse.ArgumentParser:
     tt.add_argument("--steps", type=int)
     tt.add_argument("--batch-rays", type=int)
     tt.add_argument("--downscale", type=float)
+    tt.add_argument("--appearance", choices=["auto", "affine", "none"],
+                    help="per-image exposure/white-balance corrections (default auto: affine for photographs, none for "
+                         "RGBA renders); held-out views are scored at the mean appearance")
     tt.add_argument("--seed", type=int, default=0)
     tt.add_argument("--resume", action="store_true", help="continue from RUN/checkpoint.pt")
     tt.add_argument("--config", help="training config JSON (e.g. another run's config.json) instead of a preset")

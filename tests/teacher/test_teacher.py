@@ -59,8 +59,11 @@ def test_render_equals_rendering_core_on_the_teachers_intervals(tiny_scene, tmp_
     assert model.sh_degree == 2
 
 
-def test_resume_gives_the_same_weights(tiny_scene, tmp_path):
-    cfg = tiny_config(steps=6)
+@pytest.mark.parametrize("appearance", ["auto", "affine"])
+def test_resume_gives_the_same_weights(tiny_scene, tmp_path, appearance):
+    """Also with per-image appearance corrections (forced on: the RGBA scene's ``auto`` is none), which the
+    checkpoint carries and resume restores."""
+    cfg = replace(tiny_config(steps=6), appearance=appearance)
     straight = train_teacher(tiny_scene, tmp_path / "straight", cfg)
     train_teacher(tiny_scene, tmp_path / "resumed", cfg, stop_at=3)
     meta = json.loads((tmp_path / "resumed" / "config.json").read_text())
@@ -69,6 +72,15 @@ def test_resume_gives_the_same_weights(tiny_scene, tmp_path):
     a, b = params(straight), params(tmp_path / "resumed")
     for k in a:
         torch.testing.assert_close(a[k], b[k], atol=0, rtol=0, msg=k)
+    meta = json.loads((straight / "config.json").read_text())
+    assert meta["appearance"] == ("none" if appearance == "auto" else "affine")
+    states = [torch.load(r / "checkpoint.pt", weights_only=False) for r in (straight, tmp_path / "resumed")]
+    if appearance == "affine":
+        assert set(meta["appearance_spread"]) == {"max_offset", "max_matrix"}
+        assert float(states[0]["appearance"]["params"].abs().max()) > 0  # six steps moved the corrections
+        torch.testing.assert_close(states[0]["appearance"]["params"], states[1]["appearance"]["params"], atol=0, rtol=0)
+    else:
+        assert "appearance" not in states[0] and "appearance_spread" not in meta
 
 
 def test_checkpoint_round_trip_and_errors(tiny_scene, tmp_path):

@@ -23,7 +23,12 @@ class TeacherTrainConfig:
     weight_decay: float = 1e-6
     seed: int = 0
     downscale: float = 1.0
-    random_background: bool = True  # RGBA data: composite prediction and target on the same random colour
+    # Per-image exposure / white-balance corrections (teacher/appearance.py): auto = affine for photographs,
+    # none for RGBA renders.
+    appearance: str = "auto"
+    # Each training ray's prediction is composited on a random colour (RGBA targets on the same one): the field must
+    # be opaque wherever the photos are. False: white.
+    random_background: bool = True
     checkpoint_every: int = 500
     val_every: int = 1000
     val_rays: int = 4096

@@ -14,6 +14,7 @@ from nerfbake.data.dataset import Dataset, object_box
 from nerfbake.data.formats import load_dataset
 from nerfbake.data.pixels import PixelStore
 from nerfbake.progress import console, progress_bar
+from nerfbake.teacher.appearance import APPEARANCE_LR_SCALE, ImageAppearance, resolve_appearance
 from nerfbake.teacher.models import HashTeacherConfig, NeRFSHTeacherConfig, SceneBox, build_teacher
 from nerfbake.teacher.presets import TeacherTrainConfig
 from nerfbake.train.loop import (RunLog, finish_run, DataParallel, Interrupt, default_device, RateMeter, git_revision, load_checkpoint, log_linear_lr,
@@ -63,18 +64,22 @@ def config_from_dict(d: dict) -> TeacherTrainConfig:
     h, n = d.pop("hash"), d.pop("nerf_sh")
     prop = ProposalConfig(**h.pop("proposal")) if "proposal" in h else ProposalConfig()
     h.setdefault("unbounded_sampler", "proposal")  # runs made before the contracted occupancy grid
+    d.setdefault("appearance", "none")  # runs made before per-image appearance
     hash_cfg = HashTeacherConfig(field=HashSHConfig(**h.pop("field")), proposal=prop, **h)
     nerf_cfg = NeRFSHTeacherConfig(field=NeRFSHConfig(**n.pop("field")), **n)
     return TeacherTrainConfig(hash=hash_cfg, nerf_sh=nerf_cfg, **d)
 
 
-def make_optimizer(model, cfg: TeacherTrainConfig):
-    """Adam (instant-ngp's betas, eps 1e-15), fused, with weight decay on the MLPs only."""
+def make_optimizer(model, cfg: TeacherTrainConfig, appearance: ImageAppearance | None = None):
+    """Adam (instant-ngp's betas, eps 1e-15), fused, with weight decay on the MLPs only. A group's ``lr_scale``
+    multiplies the schedule's rate (the per-image appearance learns slower than the field)."""
     grid_params = [p for n, p in model.named_parameters() if n.endswith("grid.table")]
     other = [p for n, p in model.named_parameters() if not n.endswith("grid.table")]
     groups = [{"params": other, "weight_decay": cfg.weight_decay}]
     if grid_params:
         groups.append({"params": grid_params, "weight_decay": 0.0})
+    if appearance is not None:
+        groups.append({"params": list(appearance.parameters()), "weight_decay": 0.0, "lr_scale": APPEARANCE_LR_SCALE})
     return torch.optim.Adam(groups, lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15, fused=True)
 
 
@@ -109,23 +114,26 @@ def draw_batch(store: PixelStore, model, cfg: TeacherTrainConfig, gen: torch.Gen
     slice: every rank of a data-parallel run, and a single process, see the same rays with the same noise."""
     n = cfg.batch_rays
     batch = store.sample_uniform_rays(n, gen)
-    random_bg = cfg.random_background and batch["target"].shape[-1] == 4
-    batch["background"] = torch.rand(n, 3, generator=gen) if random_bg else torch.ones(n, 3)
+    batch["background"] = torch.rand(n, 3, generator=gen) if cfg.random_background else torch.ones(n, 3)
     batch["noise"] = torch.rand(n, model.noise_dims, generator=gen)
     mine = dp.shard(n)
     return {k: v[mine].to(dp.device) for k, v in batch.items()}
 
 
-def loss_terms(model, batch: dict, total_rays: int, gen: torch.Generator, world: int = 1):
+def loss_terms(model, batch: dict, total_rays: int, gen: torch.Generator, world: int = 1,
+               appearance: ImageAppearance | None = None):
     """Photometric loss of one (rank's share of a) batch, normalised by the global batch size so gradients
-    summed over ranks equal one process's mean; plus the teacher's own regularisers."""
-    target = batch["target"]
-    if target.shape[-1] == 4:
-        bg = batch["background"]
-        gt = target[:, :3] * target[:, 3:] + bg * (1 - target[:, 3:])
-    else:
-        bg, gt = None, target
+    summed over ranks equal one process's mean; plus the teacher's own regularisers. ``appearance`` turns the
+    teacher's colour into each training photo's before the comparison."""
+    target, bg = batch["target"], batch["background"]
+    # RGBA renders: prediction and target on the same colour. Opaque photos: the prediction alone is put on it, so
+    # a ray that leaves any light through is wrong on every colour and the field learns to be opaque. (On black, as
+    # before, a ray could darken a pixel by letting light through, and every later render on another background
+    # showed it: fern's held-out views lost 3.3 dB to a white haze.)
+    gt = target[:, :3] * target[:, 3:] + bg * (1 - target[:, 3:]) if target.shape[-1] == 4 else target
     out = model.render_rays(batch["origins"], batch["directions"], bg, noise=batch["noise"])
+    if appearance is not None:
+        out["rgb"] = appearance(out["rgb"], batch["cam_idx"])
     sq = ((out["rgb"] - gt) ** 2).sum()
     loss = sq / (3 * total_rays)
     terms = {"mse": loss.detach()}
@@ -168,24 +176,34 @@ def train_teacher(data: str | Path, out: str | Path, cfg: TeacherTrainConfig, re
         if existing.get("complete"):
             raise ValueError(f"{out}: already holds a finished teacher; pass --resume to continue or choose another --out")
     model = build_teacher(cfg.field, cfg.model_config, box).to(dp.device)
-    optimizer = make_optimizer(model, cfg)
+    appearance_mode = resolve_appearance(cfg.appearance, ds.background is not None)
+    appearance = ImageAppearance(len(ds.split("train"))).to(dp.device) if appearance_mode == "affine" else None
+    optimizer = make_optimizer(model, cfg, appearance)
+    trained = list(model.parameters()) + (list(appearance.parameters()) if appearance is not None else [])
     start = 0
     if resume and ckpt_path.is_file():
         state = load_checkpoint(ckpt_path)
         model.load_state_dict(state["model"])
+        if appearance is not None:
+            appearance.load_state_dict(state["appearance"])
         optimizer.load_state_dict(state["optimizer"])  # moves the moments onto the parameters' device
         start = int(state["step"])
         if dp.is_main:
             console.print(f"resuming {out} at step {start}")
     meta = {"train": to_jsonable(cfg), "box": asdict(box), "data": str(Path(data).resolve()), "dataset": ds.info(),
-            "git": git_revision(), "world_size": dp.world, "complete": False}
+            "git": git_revision(), "world_size": dp.world, "complete": False,
+            "appearance": appearance_mode}
     if dp.is_main:
         write_json_atomic(out / CONFIG, meta)
     with progress_bar("loading images", len(ds.split("train")), unit="img") as adv:
         store = PixelStore(ds, "train", progress=lambda k, n: adv())
 
     def state_dict(step):
-        return {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step, "kind": cfg.field}
+        state = {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step, "kind": cfg.field}
+        if appearance is not None:
+            state["appearance"] = appearance.state_dict()
+            meta["appearance_spread"] = appearance.summary()  # recorded in config.json with the last checkpoint
+        return state
 
     val_split = "val" if "val" in ds.splits else "test"
     val_index = ds.split(val_split)[0]
@@ -209,12 +227,12 @@ def train_teacher(data: str | Path, out: str | Path, cfg: TeacherTrainConfig, re
                 else:
                     lr = log_linear_lr(step, cfg.steps, cfg.lr, cfg.lr_final, cfg.warmup_steps)
                 for g in optimizer.param_groups:
-                    g["lr"] = lr
+                    g["lr"] = lr * g.get("lr_scale", 1.0)
                 batch = draw_batch(store, model, cfg, gen, dp)
-                loss, terms, render, sq = loss_terms(model, batch, cfg.batch_rays, gen, dp.world)
+                loss, terms, render, sq = loss_terms(model, batch, cfg.batch_rays, gen, dp.world, appearance)
                 optimizer.zero_grad(set_to_none=False)  # keeps the hash table's gradient buffer
                 loss.backward()
-                dp.all_reduce_grads(model.parameters())
+                dp.all_reduce_grads(trained)
                 optimizer.step()
                 step += 1
                 mse = dp.all_reduce_sum(float(sq)) / (3 * cfg.batch_rays)
