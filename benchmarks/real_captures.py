@@ -4,6 +4,7 @@ stage times, peak memory and disk, plus one picture per scene (ground truth | te
 
     python benchmarks/real_captures.py --work outputs/real [--scenes bonsai,fern,fox,phone]
         [--bonsai-images 100] [--downscale bonsai=2] [--teacher-steps N] [--distill-steps N] [--eval-views 25]
+        [--pipeline-args '--octree-grid 128 ...']
 
 Scenes (``../shared/data``): bonsai_800 (292 photos, no poses; every 8th photo held out), fern (LLFF images_8),
 fox (instant-ngp transforms.json), phone (phone_video/beer.mp4 through ``process --video``). Finished work in
@@ -14,6 +15,7 @@ from __future__ import annotations
 import argparse
 import json
 import resource
+import shlex
 import shutil
 import subprocess
 import sys
@@ -69,6 +71,8 @@ def main() -> None:
     ap.add_argument("--teacher-steps", type=int)
     ap.add_argument("--distill-steps", type=int)
     ap.add_argument("--eval-views", type=int, default=25)
+    ap.add_argument("--pipeline-args", default="", help="more nerfbake pipeline options for every scene, e.g. "
+                    "'--octree-grid 128 --octree-epochs 1 --bake-stride 4'")
     args = ap.parse_args()
     work = Path(args.work).resolve()
     work.mkdir(parents=True, exist_ok=True)
@@ -96,6 +100,7 @@ def main() -> None:
             cmd += ["--teacher-steps", str(args.teacher_steps)]
         if args.distill_steps:
             cmd += ["--distill-steps", str(args.distill_steps)]
+        cmd += shlex.split(args.pipeline_args)
         entry["pipeline_seconds_this_run"] = run(cmd, log)
         results = json.loads((run_dir / "results.json").read_text())
         entry["downscale"] = results["config"].get("downscale")

@@ -674,8 +674,10 @@ def cmd_view(args) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     from nerfbake.data.errors import DatasetError
+    from nerfbake.signals import terminate_like_ctrl_c
 
     args = build_parser().parse_args(argv)
+    terminate_like_ctrl_c()
     try:
         return args.func(args)
     except (DatasetError, ValueError, FileNotFoundError) as exc:

@@ -235,3 +235,25 @@ def test_exif_orientation_is_applied_and_unreadable_files_reported(tmp_path):
     with Image.open(tmp_path / "out" / "a.jpg") as im:
         assert im.size == (20, 40) and im.getexif().get(0x0112, 1) == 1
     assert (tmp_path / "out" / "b.jpg").read_bytes() == (photos / "b.jpg").read_bytes()
+
+
+def test_a_killed_process_leaves_nothing_behind(synth_photos, tmp_path):
+    """SIGTERM while SfM runs: no dataset folder, and no hidden temporary folder beside where it would have been."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    photos, _, _ = synth_photos
+    out = tmp_path / "dataset"
+    proc = subprocess.Popen([sys.executable, "-m", "nerfbake", "process", "--images", str(photos), "--out", str(out)],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    deadline = time.time() + 120
+    while time.time() < deadline and not list(tmp_path.glob(".dataset.tmp-*/images/*")):
+        time.sleep(0.1)
+    assert proc.poll() is None, "process finished before it could be stopped"
+    proc.send_signal(signal.SIGTERM)
+    _, err = proc.communicate(timeout=600)
+    assert proc.returncode == 130, err[-2000:]
+    assert "interrupted" in err
+    assert not out.exists() and not list(tmp_path.iterdir())

@@ -166,7 +166,9 @@ def test_both_unbounded_samplers_train_on_a_real_capture(tmp_path, fox, sampler)
     assert (out["acc"] <= 1 + 1e-5).all()
 
 
-def test_ctrl_c_saves_a_checkpoint_and_resume_finishes(tiny_scene, tmp_path):
+@pytest.mark.parametrize("signal_name", ["SIGINT", "SIGTERM"])
+def test_ctrl_c_saves_a_checkpoint_and_resume_finishes(tiny_scene, tmp_path, signal_name):
+    """Ctrl-C, or a SIGTERM from kill or a scheduler, stops at the next step with a checkpoint."""
     import signal
     import time
 
@@ -184,7 +186,7 @@ def test_ctrl_c_saves_a_checkpoint_and_resume_finishes(tiny_scene, tmp_path):
         if log.is_file() and log.read_text().count("\n") >= 1:
             break
         time.sleep(0.2)
-    proc.send_signal(signal.SIGINT)
+    proc.send_signal(getattr(signal, signal_name))
     _, err = proc.communicate(timeout=120)
     assert proc.returncode == 0, err[-2000:]
     assert "continue with --resume" in err

@@ -88,9 +88,13 @@ def _check_config(cfg: ProcessConfig) -> None:
 
 @contextlib.contextmanager
 def _quiet_colmap():
-    """COLMAP logs every step to stderr; keep errors only while we run (our report says what happened)."""
+    """COLMAP logs every step to stderr; keep errors only while we run (our report says what happened). Importing
+    pycolmap hands SIGTERM to glog, which aborts: take it back so a killed run cleans up."""
     import pycolmap
 
+    from nerfbake.signals import terminate_like_ctrl_c
+
+    terminate_like_ctrl_c()
     old = pycolmap.logging.minloglevel
     pycolmap.logging.minloglevel = 2
     try:

@@ -83,7 +83,7 @@ def load_checkpoint(path: Path) -> dict:
 
 
 class Interrupt:
-    """Turns the first Ctrl-C (SIGINT) into a flag the loop checks, so it can checkpoint and stop cleanly."""
+    """Turns the first Ctrl-C (SIGINT) or SIGTERM into a flag the loop checks, so it can checkpoint and stop cleanly."""
 
     def __init__(self):
         self.requested = False
@@ -95,15 +95,16 @@ class Interrupt:
                 raise KeyboardInterrupt
             self.requested = True
 
-        try:
-            self._old = signal.signal(signal.SIGINT, handler)
+        try:  # SIGTERM (kill, a scheduler) stops a run the same way: checkpoint, then exit
+            self._old = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
         except ValueError:  # not the main thread
             self._old = None
         return self
 
     def __exit__(self, *exc):
         if self._old is not None:
-            signal.signal(signal.SIGINT, self._old)
+            for sig, old in self._old.items():
+                signal.signal(sig, old)
         return False
 
 
