@@ -466,8 +466,8 @@ def build_parser() -> argparse.ArgumentParser:
     tt.add_argument("--batch-rays", type=int)
     tt.add_argument("--downscale", type=float)
     tt.add_argument("--appearance", choices=["auto", "affine", "none"],
-                    help="per-image exposure/white-balance corrections (default auto: affine for photographs, none for "
-                         "RGBA renders); held-out views are scored at the mean appearance")
+                    help="per-image exposure/white-balance corrections (default none; auto: affine for photographs, none "
+                         "for RGBA renders); held-out views are scored at the mean appearance")
     tt.add_argument("--seed", type=int, default=0)
     tt.add_argument("--resume", action="store_true", help="continue from RUN/checkpoint.pt")
     tt.add_argument("--config", help="training config JSON (e.g. another run's config.json) instead of a preset")
