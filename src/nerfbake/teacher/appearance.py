@@ -48,5 +48,4 @@ class ImageAppearance(nn.Module):
     def summary(self) -> dict:
         """How far the images' corrections spread: largest offset and matrix entry (0 for identical photos)."""
         p = self.centred().detach()
-        return {"max_offset": float(p[:, 9:].abs().max()) if len(p) else 0.0,
-                "max_matrix": float(p[:, :9].abs().max()) if len(p) else 0.0}
+        return {"max_offset": float(p[:, 9:].abs().max()), "max_matrix": float(p[:, :9].abs().max())}

@@ -179,7 +179,7 @@ def train_teacher(data: str | Path, out: str | Path, cfg: TeacherTrainConfig, re
     appearance_mode = resolve_appearance(cfg.appearance, ds.background is not None)
     appearance = ImageAppearance(len(ds.split("train"))).to(dp.device) if appearance_mode == "affine" else None
     optimizer = make_optimizer(model, cfg, appearance)
-    trained = list(model.parameters()) + (list(appearance.parameters()) if appearance is not None else [])
+    trained = [p for g in optimizer.param_groups for p in g["params"]]  # what every rank's gradients must agree on
     start = 0
     if resume and ckpt_path.is_file():
         state = load_checkpoint(ckpt_path)
@@ -202,7 +202,6 @@ def train_teacher(data: str | Path, out: str | Path, cfg: TeacherTrainConfig, re
         state = {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": step, "kind": cfg.field}
         if appearance is not None:
             state["appearance"] = appearance.state_dict()
-            meta["appearance_spread"] = appearance.summary()  # recorded in config.json with the last checkpoint
         return state
 
     val_split = "val" if "val" in ds.splits else "test"
@@ -257,5 +256,7 @@ def train_teacher(data: str | Path, out: str | Path, cfg: TeacherTrainConfig, re
             runlog.close()
     if start < cfg.steps <= step:  # this call finished the run
         model.after_training(step_generator(cfg.seed, cfg.steps), log=console.print if dp.is_main else None)
+    if appearance is not None:
+        meta["appearance_spread"] = appearance.summary()  # finish_run records it in config.json
     finish_run(dp, ckpt_path, state_dict, out / CONFIG, meta, step, cfg.steps)
     return out
