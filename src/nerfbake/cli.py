@@ -410,6 +410,7 @@ def cmd_smerf_render(args) -> int:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="nerfbake", description=__doc__.splitlines()[0])
+    parser.add_argument("--debug", action="store_true", help="show the full traceback of an error")
     sub = parser.add_subparsers(dest="command", required=True)
 
     data = sub.add_parser("data", help="inspect datasets").add_subparsers(dest="data_command", required=True)
@@ -673,19 +674,36 @@ def cmd_view(args) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from nerfbake.data.errors import DatasetError
+    """Exit 0 on success, 2 with one ``error: ...`` line for bad input (the project's errors, missing files, a busy
+    port), 130 on Ctrl-C; anything else is a bug, reported in one line as such (``--debug``: the traceback)."""
+    from nerfbake.errors import NerfbakeError
     from nerfbake.signals import terminate_like_ctrl_c
 
     args = build_parser().parse_args(argv)
     terminate_like_ctrl_c()
     try:
         return args.func(args)
-    except (DatasetError, ValueError, FileNotFoundError) as exc:
-        print(f"error: {exc}", file=sys.stderr)
-        return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except (NerfbakeError, ValueError, OSError) as exc:
+        if args.debug:
+            raise
+        print(f"error: {_one_line(exc)}", file=sys.stderr)
+        return 2
+    except Exception as exc:  # noqa: BLE001 -- the last line of defence against a traceback
+        if args.debug:
+            raise
+        print(f"error: unexpected {type(exc).__name__}: {_one_line(exc)} -- this is a bug in nerfbake; rerun with "
+              "--debug for the traceback and report it", file=sys.stderr)
+        return 1
+
+
+def _one_line(exc: BaseException) -> str:
+    text = str(exc) or type(exc).__name__
+    if isinstance(exc, OSError) and exc.filename and str(exc.filename) not in text:
+        text = f"{exc.filename}: {text}"
+    return " ".join(text.split())
 
 
 if __name__ == "__main__":

@@ -1,7 +1,5 @@
 """The web viewer in a real headless chromium (SwiftShader here): its pictures against the Python renderers on the
 same views, streaming across submodels, benchmark output, and the server's path rules."""
-import gzip
-import http.client
 import json
 import shutil
 
@@ -17,48 +15,6 @@ pytestmark = pytest.mark.skipif(shutil.which("chromium") is None, reason="needs 
 def psnr(a: np.ndarray, b: np.ndarray) -> float:
     mse = np.mean((a.astype(np.float64) - b.astype(np.float64)) ** 2) / 255.0 ** 2
     return float(10 * np.log10(1.0 / max(mse, 1e-12)))
-
-
-# --- server ---------------------------------------------------------------------------------------------------------
-
-def _get(server, path):
-    conn = http.client.HTTPConnection("127.0.0.1", server.port, timeout=10)
-    conn.request("GET", path)
-    res = conn.getresponse()
-    return res.status, dict(res.getheaders()), res.read()
-
-
-def test_server_serves_gzip_assets_and_refuses_paths_outside_its_folders(tmp_path):
-    from nerfbake.viewer.server import SceneError, ViewerServer, find_scene
-
-    assets = tmp_path / "scene"
-    shutil.copytree(shared_data("smerf_tiny"), assets)
-    (tmp_path / "secret.txt").write_text("not for the browser")
-    with ViewerServer(assets, port=0) as server:
-        status, headers, body = _get(server, "/scene/sm_000/sparse_grid_block_indices.raw")
-        assert status == 200 and headers["Content-Encoding"] == "gzip" and "max-age" in headers["Cache-Control"]
-        assert gzip.decompress(body) == gzip.decompress((assets / "sm_000" / "sparse_grid_block_indices.raw.gz").read_bytes())
-        status, headers, body = _get(server, "/scene/sm_000/deferred_mlp.json")
-        assert status == 200 and "ResampleDense_0/kernel" in json.loads(gzip.decompress(body))
-        assert _get(server, "/")[0] == 200 and _get(server, "/viewer/main.js")[1]["Content-Type"] == "text/javascript"
-        info = json.loads(_get(server, "/scene.json")[2])
-        assert info["kind"] == "smerf" and info["entry"] == "sm_000" and info["submodels"] == ["sm_000"]
-        for bad in ("/scene/../secret.txt", "/scene/%2e%2e/secret.txt", "/scene/sm_000/../../secret.txt",
-                    "/scene//etc/passwd", "/scene/%2Fetc%2Fpasswd", "/viewer/../server.py"):
-            status, _, body = _get(server, bad)
-            assert status == 403 and b"not for the browser" not in body, bad
-        assert _get(server, "/scene/sm_000/nothing.raw")[0] == 404
-        assert _get(server, "/elsewhere")[0] == 404
-    tree = tmp_path / "t.npz"
-    tree.write_bytes((shared_data("octree_fixtures") / "good_svox_raw.npz").read_bytes())
-    with ViewerServer(tree, port=0) as server:
-        assert _get(server, "/scene/t.npz")[0] == 200
-        assert _get(server, "/scene/secret.txt")[0] == 403  # only the tree, not the files beside it
-    with pytest.raises(SceneError, match="not a SMERF asset directory"):
-        find_scene(tmp_path)
-    with pytest.raises(FileNotFoundError, match="no such scene"):
-        find_scene(tmp_path / "missing")
-    assert main(["view", str(tmp_path / "secret.txt")]) == 2
 
 
 # --- pictures against the Python renderers ----------------------------------------------------------------------------

@@ -18,10 +18,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from nerfbake.errors import NerfbakeError
 from nerfbake.octree.tree import N, Octree, basis_from_format
 
 
-class OctreeFileError(ValueError):
+class OctreeFileError(NerfbakeError):
     """A tree file that cannot be read; the message names the file and what to do."""
 
 

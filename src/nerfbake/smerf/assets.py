@@ -14,8 +14,10 @@ from pathlib import Path
 
 import numpy as np
 
+from nerfbake.errors import NerfbakeError
 
-class AssetError(ValueError):
+
+class AssetError(NerfbakeError):
     """A SMERF asset directory that cannot be read; names the file and the fix."""
 
 

@@ -27,6 +27,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from nerfbake.errors import NerfbakeError
 from nerfbake.progress import console, progress_bar
 from nerfbake.smerf.deferred_mlp import deferred_mlp_text
 from nerfbake.smerf.quantize import RANGE_DENSITY, RANGE_FEATURES, to_bytes
@@ -36,7 +37,7 @@ BLOCK = 8
 MAX_BLOCKS_PER_AXIS = MAX_ATLAS_SIDE // ATLAS_BLOCK  # 227, also below the 255 "empty" marker
 
 
-class BakeError(ValueError):
+class BakeError(NerfbakeError):
     pass
 
 

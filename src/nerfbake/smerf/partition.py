@@ -12,8 +12,10 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from nerfbake.errors import NerfbakeError
 
-class PartitionError(ValueError):
+
+class PartitionError(NerfbakeError):
     pass
 
 
