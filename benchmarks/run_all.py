@@ -18,6 +18,8 @@ import sys
 import time
 from pathlib import Path
 
+from nerfbake import atomic
+
 HERE = Path(__file__).resolve().parent
 ROOT = HERE.parent
 
@@ -61,7 +63,7 @@ def main() -> None:
         print(f"[run_all] {name}: {' '.join(str(c) for c in cmd)}", file=sys.stderr, flush=True)
         res, sec, mb = run([str(c) for c in cmd], out / f"{name}.log")
         summary[name] = {"seconds": sec, "peak_rss_mb": mb, "result": res}
-        (out / "summary.json").write_text(json.dumps(summary, indent=2))
+        atomic.write_json(out / "summary.json", summary)
         return res
 
     # 1. teacher fields: training and rendering rays/s, the Warp hash kernel against torch
@@ -117,7 +119,7 @@ def main() -> None:
         "peak_rss_mb": {k: v["peak_rss_mb"] for k, v in summary.items() if isinstance(v, dict) and "peak_rss_mb" in v},
         "total_seconds": sum(v["seconds"] for v in summary.values() if isinstance(v, dict) and "seconds" in v),
     }
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    atomic.write_json(out / "summary.json", summary)
     print(json.dumps(summary, indent=2))
 
 

@@ -9,6 +9,8 @@ import json
 import sys
 from pathlib import Path
 
+from nerfbake.atomic import atomic_folder, check_output_file, check_output_folder
+
 
 def _print_json(obj) -> None:
     print(json.dumps(obj, indent=2))
@@ -70,7 +72,7 @@ def cmd_synth(args) -> int:
 
     held = max(4, cfg.views // 4)
     with progress_bar(f"synth {cfg.scene}", cfg.views + 2 * held, unit="views") as advance:
-        out = render_dataset(cfg, Path(args.out), progress=lambda done, total: advance())
+        out = render_dataset(cfg, Path(args.out), progress=lambda done, total: advance(), overwrite=args.overwrite)
     print(f"wrote {out} ({cfg.views} train / {held} val / {held} test views, {cfg.width}x{cfg.height})")
     return 0
 
@@ -81,7 +83,8 @@ def cmd_process(args) -> int:
 
     cfg = ProcessConfig(out=Path(args.out), images=Path(args.images) if args.images else None,
                         video=Path(args.video) if args.video else None, fps=args.fps, max_images=args.max_images,
-                        camera_model=args.camera_model, matcher=args.matcher, downscales=parse_downscales(args.downscales))
+                        camera_model=args.camera_model, matcher=args.matcher, downscales=parse_downscales(args.downscales),
+                        overwrite=args.overwrite)
     report = process(cfg, log=lambda line: print(line, file=sys.stderr))
     for line in summary_lines(report):
         print(line)
@@ -198,7 +201,7 @@ def cmd_teacher_eval(args) -> int:
 def cmd_teacher_render(args) -> int:
     from nerfbake.teacher.evaluate import render_poses
 
-    written = render_poses(Path(args.run), Path(args.pose_file), Path(args.out))
+    written = render_poses(Path(args.run), Path(args.pose_file), Path(args.out), overwrite=args.overwrite)
     print(f"wrote {len(written)} images to {args.out}")
     return 0
 
@@ -236,6 +239,7 @@ def cmd_octree_build(args) -> int:
     if args.no_autoscale:
         cfg = replace(cfg, autoscale=False)
     cfg.depth  # validates --grid before any work
+    check_output_file(args.out, args.overwrite)
     summary = build_octree(args.teacher, args.out, cfg)
     _print_json(summary) if args.json else print(
         f"wrote {summary['tree']}: {summary['num_leaves']:,} leaves ({summary['kept_voxels']:,} kept voxels at "
@@ -251,6 +255,7 @@ def cmd_octree_optimize(args) -> int:
     cfg = _override(optimize_preset(args.preset), args, ("epochs", "lr", "val_every", "downscale"))
     if args.continue_on_decrease:
         cfg = replace(cfg, continue_on_decrease=True)
+    check_output_file(args.out, args.overwrite)
     summary = optimize_tree(args.tree, args.data, args.out, cfg)
     _print_json(summary) if args.json else print(
         f"wrote {summary['tree']}: best validation PSNR {summary['best_val_psnr']:.2f} dB at epoch {summary['best_epoch']}")
@@ -261,6 +266,7 @@ def cmd_octree_compress(args) -> int:
     from nerfbake.octree.compress import compress_tree
 
     band = {"band_bits": [int(b) for b in args.band_bits.split(",")]} if args.band_bits else {}
+    check_output_file(args.out, args.overwrite)
     summary = compress_tree(args.tree, args.out, bits=args.bits, retain=args.retain, sigma_thresh=args.sigma_thresh,
                             sh_degree=args.sh_degree, min_extent=args.min_extent, **band)
     _print_json(summary) if args.json else print(
@@ -315,17 +321,17 @@ def cmd_octree_render(args) -> int:
     from nerfbake.teacher.evaluate import read_pose_file
     from nerfbake.train.loop import default_device
 
+    out = Path(args.out)
+    check_output_folder(out, args.overwrite, "render")
     tree = load_tree(args.tree, default_device())
     cams = read_pose_file(Path(args.pose_file))
     opts = _octree_opts(args)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    with progress_bar("octree render", len(cams), unit="view") as advance:
+    with atomic_folder(out, args.overwrite, "render") as tmp, progress_bar("octree render", len(cams), unit="view") as advance:
         for i, cam in enumerate(cams):
             img = render_camera(tree, cam, opts)
-            iio.imwrite(out / f"{i:04d}.png", to_png(img["rgb"]))
+            iio.imwrite(tmp / f"{i:04d}.png", to_png(img["rgb"]))
             if args.depth:
-                np.save(out / f"{i:04d}_depth.npy", img["depth"].astype(np.float32))
+                np.save(tmp / f"{i:04d}_depth.npy", img["depth"].astype(np.float32))
             advance()
     print(f"wrote {len(cams)} images to {out}")
     return 0
@@ -395,14 +401,14 @@ def cmd_smerf_render(args) -> int:
     from nerfbake.smerf.assets import SceneAssets
     from nerfbake.smerf.baked_render import read_test_frames, render_baked
 
+    out = Path(args.out)
+    check_output_folder(out, args.overwrite, "render")
     scene = SceneAssets.open(args.assets)
     frames = args.frames or str(scene.root / f"sm_{scene.params['params_to_sm'][0]:03d}" / "test_frames.json")
     cams = read_test_frames(frames, args.width, args.height)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    with progress_bar("smerf render", len(cams), unit="view") as advance:
+    with atomic_folder(out, args.overwrite, "render") as tmp, progress_bar("smerf render", len(cams), unit="view") as advance:
         for i, cam in enumerate(cams):
-            iio.imwrite(out / f"{i:04d}.png", to_png(render_baked(scene, cam, step_mult=args.step_mult)))
+            iio.imwrite(tmp / f"{i:04d}.png", to_png(render_baked(scene, cam, step_mult=args.step_mult)))
             advance()
     print(f"wrote {len(cams)} images to {out}")
     return 0
@@ -432,6 +438,7 @@ def build_parser() -> argparse.ArgumentParser:
     syn = sub.add_parser("synth", help="render a synthetic Blender-format dataset with Mitsuba 3")
     syn.add_argument("--scene", default="objects")
     syn.add_argument("--out")
+    syn.add_argument("--overwrite", action="store_true", help="replace an existing output (only once the new one is complete)")
     syn.add_argument("--width", type=int, default=200)
     syn.add_argument("--height", type=int, default=200)
     syn.add_argument("--views", type=int, default=60, help="training views (val and test get a quarter each, at least 4)")
@@ -445,6 +452,7 @@ def build_parser() -> argparse.ArgumentParser:
     src.add_argument("--images", help="folder of photos (EXIF orientation honoured; unreadable files are skipped)")
     src.add_argument("--video", help="video file: the sharpest frame of each evenly spaced window is kept")
     pr.add_argument("--out", required=True, help="dataset folder to create (images/, sparse/0/, transforms.json)")
+    pr.add_argument("--overwrite", action="store_true", help="replace an existing output (only once the new one is complete)")
     pr.add_argument("--fps", type=float, help="video: frames kept per second of video (default: --max-images in all)")
     pr.add_argument("--max-images", type=int, help="use at most N images, evenly spread (video default 100; folder: all)")
     pr.add_argument("--camera-model", default="SIMPLE_RADIAL",
@@ -485,6 +493,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--run", required=True)
     tr.add_argument("--pose-file", required=True)
     tr.add_argument("--out", required=True)
+    tr.add_argument("--overwrite", action="store_true", help="replace an existing output (only once the new one is complete)")
     tr.set_defaults(func=cmd_teacher_render)
 
     octree = sub.add_parser("octree", help="PlenOctrees: build, fine-tune, compress, evaluate, render").add_subparsers(
@@ -492,6 +501,7 @@ def build_parser() -> argparse.ArgumentParser:
     ob = octree.add_parser("build", help="extract a tree from a trained teacher")
     ob.add_argument("--teacher", required=True, help="teacher run folder")
     ob.add_argument("--out", required=True, help="tree .npz to write")
+    ob.add_argument("--overwrite", action="store_true", help="replace an existing output (only once the new one is complete)")
     ob.add_argument("--preset", choices=["cpu-small", "paper"], default="cpu-small")
     ob.add_argument("--grid", type=int, help="dense grid side (power of two; 512 in the paper)")
     ob.add_argument("--weight-thresh", type=float, help="keep voxels with this compositing weight on some training ray")
@@ -504,6 +514,7 @@ def build_parser() -> argparse.ArgumentParser:
     oo.add_argument("--tree", required=True)
     oo.add_argument("--data", required=True)
     oo.add_argument("--out", required=True)
+    oo.add_argument("--overwrite", action="store_true", help="replace an existing output (only once the new one is complete)")
     oo.add_argument("--preset", choices=["cpu-small", "paper"], default="cpu-small")
     oo.add_argument("--epochs", type=int)
     oo.add_argument("--lr", type=float)
@@ -515,6 +526,7 @@ def build_parser() -> argparse.ArgumentParser:
     oc = octree.add_parser("compress", help="median-cut quantise SH into 2^bits codebooks + DEFLATE (web trees)")
     oc.add_argument("--tree", required=True)
     oc.add_argument("--out", required=True)
+    oc.add_argument("--overwrite", action="store_true", help="replace an existing output (only once the new one is complete)")
     oc.add_argument("--bits", type=int, default=16, help="codebook size 2^bits (volrend needs 16)")
     oc.add_argument("--retain", type=int, default=0, help="keep the first R SH bases unquantised")
     oc.add_argument("--sigma-thresh", type=float, default=2.0, help="drop leaves with sigma at or below this")
@@ -544,6 +556,7 @@ def build_parser() -> argparse.ArgumentParser:
     orr.add_argument("--tree", required=True)
     orr.add_argument("--pose-file", required=True)
     orr.add_argument("--out", required=True)
+    orr.add_argument("--overwrite", action="store_true", help="replace an existing output (only once the new one is complete)")
     orr.add_argument("--sh-range", help="SH components lo,hi (half-open) to sum, e.g. 0,1 for the diffuse part")
     orr.add_argument("--slice", help="slicing box xmin,ymin,zmin,xmax,ymax,zmax in tree coordinates")
     orr.add_argument("--step-size", type=float)
@@ -570,6 +583,7 @@ def build_parser() -> argparse.ArgumentParser:
     sr = smerf.add_parser("render", help="render test_frames.json views as the official viewer's shader does")
     sr.add_argument("--assets", required=True)
     sr.add_argument("--out", required=True)
+    sr.add_argument("--overwrite", action="store_true", help="replace an existing output (only once the new one is complete)")
     sr.add_argument("--frames", help="a test_frames.json (default: the first submodel's)")
     sr.add_argument("--width", type=int, default=800)
     sr.add_argument("--height", type=int, default=500)
@@ -591,7 +605,7 @@ def build_parser() -> argparse.ArgumentParser:
     bk.add_argument("--student", required=True)
     bk.add_argument("--out", required=True)
     bk.add_argument("--ray-stride", type=int, default=2, help="use every n-th pixel row/column for the alive voxels")
-    bk.add_argument("--overwrite", action="store_true")
+    bk.add_argument("--overwrite", action="store_true", help="replace an existing output (only once the new one is complete)")
     bk.set_defaults(func=cmd_bake)
 
     vw = sub.add_parser("view", help="serve the web viewer for a baked SMERF folder or a PlenOctree .npz")

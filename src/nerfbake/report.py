@@ -8,6 +8,9 @@ from pathlib import Path
 
 import numpy as np
 
+from nerfbake import atomic
+from nerfbake.errors import RunFolderError
+
 MB = 1e6
 
 
@@ -16,8 +19,13 @@ def load_results(run: Path) -> dict:
 
     run = Path(run)
     if not (run / "stages").is_dir():
-        raise FileNotFoundError(f"{run}: no stages/ folder; not a `nerfbake pipeline` run")
+        raise RunFolderError(f"{run}: no stages/ folder; not a `nerfbake pipeline` run")
     return collect_results(run)
+
+
+def save_figure(fig, path: Path) -> None:
+    with atomic.atomic_file(path) as tmp:
+        fig.savefig(tmp, format=Path(path).suffix.lstrip("."))
 
 
 def _plt():
@@ -40,7 +48,7 @@ def scatter(rows: list[dict], x_key: str, x_label: str, path: Path, scale: float
     ax.set_ylabel("test PSNR (dB)")
     ax.grid(alpha=0.3, which="both")
     fig.tight_layout()
-    fig.savefig(path)
+    save_figure(fig, path)
     plt.close(fig)
 
 
@@ -79,7 +87,7 @@ def strip(rows: list[dict], data: str | None, path: Path) -> str | None:
         ax.set_title(title, fontsize=8)
         ax.axis("off")
     fig.tight_layout()
-    fig.savefig(path)
+    save_figure(fig, path)
     plt.close(fig)
     return Path(name).stem
 
@@ -104,7 +112,7 @@ def training_curves(run: Path, path: Path) -> bool:
         ax.set_ylabel("PSNR (dB)")
         ax.grid(alpha=0.3)
     fig.tight_layout()
-    fig.savefig(path)
+    save_figure(fig, path)
     plt.close(fig)
     return True
 
@@ -121,7 +129,7 @@ def write_report(run: str | Path) -> Path:
     """``RUN/report.md`` plus ``RUN/report/*.png``; returns the Markdown path."""
     run = Path(run)
     results = load_results(run)
-    (run / "results.json").write_text(json.dumps(results, indent=2))
+    atomic.write_json(run / "results.json", results)
     rows = results["methods"]
     fig_dir = run / "report"
     fig_dir.mkdir(exist_ok=True)
@@ -165,8 +173,4 @@ def write_report(run: str | Path) -> Path:
     if cmds:
         lines += ["Open the results in a browser:", "", "```bash", *cmds, "```", ""]
     lines += ["All figures: `results.json`."]
-    path = run / "report.md"
-    tmp = path.with_suffix(".md.tmp")
-    tmp.write_text("\n".join(lines) + "\n")
-    tmp.replace(path)
-    return path
+    return atomic.write_text(run / "report.md", "\n".join(lines) + "\n")

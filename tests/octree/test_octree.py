@@ -134,7 +134,7 @@ def test_bad_files_give_clear_errors(fixtures, tmp_path):
     np.savez(tmp_path / "fmt.npz", **{**good, "data_format": np.array("SH16")})
     with pytest.raises(OctreeFileError, match="SH16 does not match data_dim 13"):
         load_tree(tmp_path / "fmt.npz")
-    with pytest.raises(FileNotFoundError, match="no such tree"):
+    with pytest.raises(OctreeFileError, match="no such tree"):
         load_tree(tmp_path / "missing.npz")
     tree = load_tree(fixtures / "good_svox_raw.npz")
     with pytest.raises(ValueError, match=r"outside the 4 basis functions"):

@@ -8,6 +8,7 @@ from pathlib import Path
 import pytest
 import torch
 
+from nerfbake.errors import RunFolderError
 from nerfbake.fields.hash_sh import HashSHConfig
 from nerfbake.render.quadrature import composite, weights_from_density
 from nerfbake.render.sh import eval_sh_color
@@ -87,7 +88,7 @@ def test_checkpoint_round_trip_and_errors(tiny_scene, tmp_path):
     run = train_teacher(tiny_scene, tmp_path / "run", tiny_config(steps=2))
     model, cfg, meta, state = load_teacher(run)
     assert state["step"] == 2 and meta["complete"] and cfg.hash.field.levels == 4
-    with pytest.raises(FileNotFoundError, match="not a teacher run folder"):
+    with pytest.raises(RunFolderError, match="not a teacher run folder"):
         load_teacher(tmp_path)
     (tmp_path / "broken").mkdir()
     (tmp_path / "broken" / "config.json").write_text((run / "config.json").read_text())

@@ -23,7 +23,6 @@ import json
 import math
 import os
 import shutil
-import tempfile
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -31,6 +30,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from nerfbake.atomic import atomic_folder, check_output_folder
 from nerfbake.data.cameras import opencv_to_opengl
 from nerfbake.data.errors import DatasetError
 from nerfbake.data.frames import Intake, intake_images, intake_video, video_info
@@ -55,6 +55,7 @@ class ProcessConfig:
     max_image_size: int = 3200  # SIFT works on images at most this large (COLMAP's default)
     affine_dsp: bool = True  # affine-adapted, domain-size-pooled SIFT (slower, many more matches)
     seed: int = 0
+    overwrite: bool = False  # replace a non-empty ``out`` (swapped in only once the new dataset is complete)
 
 
 def parse_downscales(text: str) -> tuple[int, ...]:
@@ -82,8 +83,7 @@ def _check_config(cfg: ProcessConfig) -> None:
     if cfg.max_images is not None and cfg.max_images < MIN_IMAGES:
         raise DatasetError(f"--max-images {cfg.max_images}: structure from motion needs at least {MIN_IMAGES} images")
     out = Path(cfg.out)
-    if out.exists() and (not out.is_dir() or any(out.iterdir())):
-        raise DatasetError(f"{out}: already exists; choose a new --out folder (or remove the old one)")
+    check_output_folder(out, cfg.overwrite, "dataset")
 
 
 @contextlib.contextmanager
@@ -113,10 +113,8 @@ def process(cfg: ProcessConfig, log=print) -> dict:
     """Run the whole pipeline; returns (and saves in ``out``) the report. Raises DatasetError on bad input."""
     _check_config(cfg)
     out = Path(cfg.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.tmp-", dir=out.parent))
     timings: dict[str, float] = {}
-    try:
+    with atomic_folder(out, cfg.overwrite, "dataset") as tmp:
         with _quiet_colmap():
             intake = _intake(cfg, tmp / "images", timings)
             if intake.skipped:
@@ -142,12 +140,6 @@ def process(cfg: ProcessConfig, log=print) -> dict:
             report = _write_outputs(rec, tmp, intake, registered, cfg, matcher, num_models, timings)
             shutil.rmtree(work, ignore_errors=True)
             (tmp / REPORT_NAME).write_text(json.dumps(report, indent=1))
-            if out.exists():
-                out.rmdir()  # empty (checked above)
-            os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     report["out"] = str(out)
     return report
 

@@ -19,13 +19,12 @@ from __future__ import annotations
 
 import json
 import math
-import os
-import shutil
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from nerfbake.atomic import atomic_folder, check_output_folder
 
 SCENES = {
     "objects": "object-centric RGBA scene: glossy + rough-metal spheres and a cube under an environment light",
@@ -260,8 +259,9 @@ def _to_srgb8(linear: np.ndarray) -> np.ndarray:
     return np.round(srgb * 255).astype(np.uint8)
 
 
-def render_dataset(cfg: SynthConfig, out: Path, progress=None) -> Path:
-    """Render ``cfg.scene`` into a Blender-format dataset at ``out`` (written to a temporary folder, then renamed)."""
+def render_dataset(cfg: SynthConfig, out: Path, progress=None, overwrite: bool = False) -> Path:
+    """Render ``cfg.scene`` into a Blender-format dataset at ``out`` (written to a temporary folder, then swapped
+    in); a non-empty ``out`` is refused unless ``overwrite``."""
     import imageio.v3 as iio
     import mitsuba as mi
 
@@ -286,12 +286,11 @@ def render_dataset(cfg: SynthConfig, out: Path, progress=None) -> Path:
     held = max(4, cfg.views // 4)
     splits = {"train": cfg.views, "val": held, "test": held}
     out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    check_output_folder(out, overwrite, "dataset")
     total = sum(splits.values())
     done = 0
     flip = np.diag([-1.0, 1.0, -1.0, 1.0])  # OpenGL camera axes -> Mitsuba's (looks down +Z, +X left)
-    try:
+    with atomic_folder(out, overwrite, "dataset") as tmp:
         for split, count in splits.items():
             (tmp / split).mkdir()
             frames = []
@@ -319,10 +318,4 @@ def render_dataset(cfg: SynthConfig, out: Path, progress=None) -> Path:
         meta.update({"scene": cfg.scene, "config": cfg.__dict__, "mitsuba_variant": variant,
                      "description": SCENES[cfg.scene]})
         (tmp / "scene_meta.json").write_text(json.dumps(meta, indent=1))
-        if out.exists():
-            shutil.rmtree(out)
-        os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
     return out

@@ -10,9 +10,9 @@ import time
 from pathlib import Path
 from typing import Callable
 
-import imageio.v3 as iio
 import numpy as np
 
+from nerfbake.atomic import write_image
 from nerfbake.data.dataset import Dataset
 from nerfbake.eval.metrics import image_metrics
 from nerfbake.progress import progress_bar
@@ -51,8 +51,7 @@ def evaluate_views(render: Callable, ds: Dataset, split: str = "test", max_views
             m["name"] = frame.name
             per_image.append(m)
             if image_dir is not None:
-                image_dir.mkdir(parents=True, exist_ok=True)
-                iio.imwrite(image_dir / f"{Path(frame.name).stem.replace('/', '_')}.png", to_png(pred))
+                write_image(image_dir / f"{Path(frame.name).stem.replace('/', '_')}.png", to_png(pred))
             advance()
     result = {k: float(np.mean([m[k] for m in per_image])) for k in ("psnr", "ssim", f"lpips_{net}")}
     result.update({
@@ -77,6 +76,5 @@ def validation_image(render: Callable, ds: Dataset, index: int, out_dir: Path, s
     gt = ds.image(index)
     if factor > 1:
         gt = area_downscale(np.round(gt * 255).astype(np.uint8), (cam.width, cam.height)).astype(np.float32) / 255
-    out_dir.mkdir(parents=True, exist_ok=True)
-    iio.imwrite(out_dir / f"step_{step:07d}.png", to_png(np.concatenate([pred, gt], axis=1)))
+    write_image(out_dir / f"step_{step:07d}.png", to_png(np.concatenate([pred, gt], axis=1)))
     return float(-10 * np.log10(max(np.mean((pred - gt) ** 2), 1e-10)))

@@ -11,14 +11,14 @@ from __future__ import annotations
 import ast
 import os
 import struct
-import tempfile
 import zipfile
 from pathlib import Path
 
 import numpy as np
 import torch
 
-from nerfbake.errors import NerfbakeError
+from nerfbake.atomic import atomic_file
+from nerfbake.errors import NerfbakeError, reading
 from nerfbake.octree.tree import N, Octree, basis_from_format
 
 
@@ -50,16 +50,8 @@ def tree_arrays(tree: Octree) -> dict[str, np.ndarray]:
 def write_npz(path: str | Path, arrays: dict[str, np.ndarray], compress: bool) -> Path:
     """Write atomically (temporary file in the same folder, then rename): no half-written trees."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(suffix=".npz", dir=path.parent, prefix=f".{path.stem}.")
-    os.close(fd)
-    try:
-        with open(tmp, "wb") as f:
-            (np.savez_compressed if compress else np.savez)(f, **arrays)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_file(path) as tmp, open(tmp, "wb") as f:
+        (np.savez_compressed if compress else np.savez)(f, **arrays)
     return path
 
 
@@ -72,7 +64,7 @@ def save_tree(tree: Octree, path: str | Path, compress: bool = False) -> Path:
 
 def _open(path: Path) -> dict[str, np.ndarray]:
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such tree file; build one with `nerfbake octree build`")
+        raise OctreeFileError(f"{path}: no such tree file; build one with `nerfbake octree build`")
     try:
         with np.load(path, allow_pickle=False) as z:
             return {k: z[k] for k in z.files}
@@ -94,15 +86,24 @@ def _want(path, z, key, kinds: str, ndim: int | None = None) -> np.ndarray:
 
 
 def load_tree(path: str | Path, device="cpu") -> Octree:
-    """Read a raw or compressed tree (ours, svox's, or the authors' compression script's)."""
+    """Read a raw or compressed tree (ours, svox's, or the authors' compression script's). Anything wrong with the
+    file is an :class:`OctreeFileError` naming it."""
     path = Path(path)
+    with reading(path, OctreeFileError, "write it with `nerfbake octree build` or svox's N3Tree.save"):
+        return _load_tree(path, device)
+
+
+def _load_tree(path: Path, device) -> Octree:
     z = _open(path)
     child = _want(path, z, "child", "iu", 4)
     if child.dtype != np.int32:
         raise _fail(path, f"'child' is {child.dtype}; svox and volrend store relative pointers as int32")
     if child.shape[1:] != (N, N, N):
         raise _fail(path, f"'child' has shape {child.shape}; nerfbake (and volrend's viewers) need N = 2")
-    data_dim = int(_want(path, z, "data_dim", "iu"))
+    data_dim_arr = _want(path, z, "data_dim", "iu")
+    if data_dim_arr.size != 1 or not 1 <= int(data_dim_arr.reshape(-1)[0]) <= 4096:
+        raise _fail(path, f"'data_dim' must be one positive integer, got shape {data_dim_arr.shape}")
+    data_dim = int(data_dim_arr.reshape(-1)[0])
     fmt = str(z["data_format"]) if "data_format" in z else ("RGBA" if data_dim == 4 else f"SH{(data_dim - 1) // 3}")
     try:
         nb = basis_from_format(fmt, data_dim)

@@ -9,12 +9,13 @@ from __future__ import annotations
 
 import gzip
 import json
+import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from nerfbake.errors import NerfbakeError
+from nerfbake.errors import NerfbakeError, reading
 
 
 class AssetError(NerfbakeError):
@@ -28,7 +29,7 @@ def _read_raw(path: Path, shape) -> np.ndarray:
             if candidate.suffix == ".gz":
                 try:
                     data = gzip.decompress(data)
-                except (OSError, EOFError) as exc:
+                except (OSError, EOFError, zlib.error) as exc:
                     raise AssetError(f"{candidate}: not a valid gzip file ({exc}); re-export the submodel") from None
             arr = np.frombuffer(data, np.uint8)
             if arr.size != int(np.prod(shape)):
@@ -60,22 +61,48 @@ class Submodel:
     distance: dict[int, np.ndarray] = field(default_factory=dict)  # factor -> (n, n, n)
 
 
+FIX = "re-bake it with `nerfbake bake`, or re-export it from the authors' code"
+
+
+def _read_json(path: Path) -> dict:
+    """A JSON object from ``path`` (gzip when it ends in .gz), every failure an :class:`AssetError` naming it."""
+    with reading(path, AssetError, FIX):
+        data = path.read_bytes()
+        if path.suffix == ".gz":
+            data = gzip.decompress(data)
+        obj = json.loads(data)
+    if not isinstance(obj, dict):
+        raise AssetError(f"{path}: holds a JSON {type(obj).__name__}, expected an object; {FIX}")
+    return obj
+
+
 def read_params(sm_dir: Path) -> dict:
     path = Path(sm_dir) / "scene_params.json"
     if not path.is_file():
         gz = path.with_name("scene_params.json.gz")
         if gz.is_file():
-            return json.loads(gzip.decompress(gz.read_bytes()))
+            return _read_json(gz)
         raise AssetError(f"{path}: missing; point at an sm_XXX folder of a baked SMERF scene")
-    try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise AssetError(f"{path}: invalid JSON ({exc})") from None
+    return _read_json(path)
+
+
+def params_path(sm_dir: Path) -> Path:
+    path = Path(sm_dir) / "scene_params.json"
+    return path if path.is_file() else path.with_name("scene_params.json.gz")
 
 
 def load_submodel(sm_dir: str | Path) -> Submodel:
+    """Every array of one submodel; anything wrong is an :class:`AssetError` naming the file."""
     sm_dir = Path(sm_dir)
     p = read_params(sm_dir)
+    with reading(params_path(sm_dir), AssetError, FIX):
+        return _load_submodel(sm_dir, p)
+
+
+def _load_submodel(sm_dir: Path, p: dict) -> Submodel:
+    if not isinstance(p.get("asset_metadata"), list):
+        raise AssetError(f"{params_path(sm_dir)}: no asset_metadata list (the file names and shapes of every array); "
+                         f"{FIX}")
     if p.get("export_array_format", "png") != "raw.gz":
         raise AssetError(f"{sm_dir}: export_array_format {p.get('export_array_format')!r}; nerfbake reads raw.gz assets")
     if not p.get("export_store_rgb_and_density_separately", False):
@@ -124,11 +151,16 @@ def load_deferred_mlp(sm_dir: str | Path, params: dict) -> dict[str, np.ndarray]
         path = Path(sm_dir) / "deferred_mlp.json.gz"
         if not path.is_file():
             raise AssetError(f"{path}: missing (scene_params says the deferred MLP is stored separately)")
-        raw = json.loads(gzip.decompress(path.read_bytes()))
-    out = {k: np.asarray(v["data"], np.float32).reshape(v["shape"]) for k, v in raw.items()}
+        raw = _read_json(path)
+    where = Path(sm_dir) / "deferred_mlp.json.gz" if "deferred_mlp" not in params else params_path(Path(sm_dir))
+    with reading(where, AssetError, FIX):
+        out = {k: np.asarray(v["data"], np.float32).reshape(v["shape"]) for k, v in raw.items()}
     for layer in range(3):
         if f"ResampleDense_{layer}/kernel" not in out:
-            raise AssetError(f"{sm_dir}: deferred MLP lacks ResampleDense_{layer}; the viewer needs exactly 3 grid layers")
+            raise AssetError(f"{where}: deferred MLP lacks ResampleDense_{layer}; the viewer needs exactly 3 grid layers")
+    bad = [k for k, v in out.items() if not np.all(np.isfinite(v))]
+    if bad:
+        raise AssetError(f"{where}: deferred MLP weights {', '.join(bad)} hold NaN or infinite values; {FIX}")
     return out
 
 

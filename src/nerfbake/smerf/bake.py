@@ -19,14 +19,15 @@ from __future__ import annotations
 
 import gzip
 import json
+import os
 import shutil
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 
+from nerfbake.atomic import DIR_MODE, check_output_folder, remove_stale_temps, replace_folder, temp_name
 from nerfbake.errors import NerfbakeError
 from nerfbake.progress import console, progress_bar
 from nerfbake.smerf.deferred_mlp import deferred_mlp_text
@@ -306,8 +307,8 @@ def bake_student(student_dir: str | Path, out: str | Path, stride: int = 2, over
 
     out = Path(out)
     dp = DataParallel()
-    if dp.is_main and out.exists() and not overwrite and any(out.iterdir()):
-        raise BakeError(f"{out}: exists and is not empty; choose another --out or remove it")
+    if dp.is_main:
+        check_output_folder(out, overwrite, "bake")
     t_start = time.time()
     student, cfg, meta = load_student(student_dir)
     student.to(dp.device)
@@ -322,16 +323,18 @@ def bake_student(student_dir: str | Path, out: str | Path, stride: int = 2, over
     bg = teacher_background(ds)
     mlp_json = student.mlp.export()
     out.parent.mkdir(parents=True, exist_ok=True)
-    if dp.is_main:  # what a killed bake into the same folder left behind
-        for stale in out.parent.glob(f".{out.name}.*"):
-            shutil.rmtree(stale, ignore_errors=True)
+    if dp.is_main:  # what a killed bake into the same folder left behind (not a running one's)
+        remove_stale_temps(out)
     if dp.world == 1:
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+        tmp = temp_name(out, keep_suffix=False)
+        tmp.mkdir(mode=DIR_MODE)
+        os.chmod(tmp, DIR_MODE)
     else:  # one name every rank can find
         tmp = out.parent / f".{out.name}.baking"
         if dp.is_main:
             shutil.rmtree(tmp, ignore_errors=True)
-            tmp.mkdir()
+            tmp.mkdir(mode=DIR_MODE)
+            os.chmod(tmp, DIR_MODE)
         dp.barrier()
     stats = {"submodels": {}}
     try:
@@ -364,9 +367,7 @@ def bake_student(student_dir: str | Path, out: str | Path, stride: int = 2, over
                           "downscale": meta.get("downscale", 1.0), "threshold": threshold, "ray_stride": stride,
                           "ranks": dp.world})
             (tmp / "bake.json").write_text(json.dumps(stats, indent=2))
-            if out.exists():
-                shutil.rmtree(out)
-            tmp.rename(out)
+            replace_folder(tmp, out)
         dp.barrier()
     except BaseException:
         if dp.is_main:

@@ -29,6 +29,7 @@ import torch
 
 from nerfbake.data.formats import load_dataset
 from nerfbake.data.pixels import PixelStore
+from nerfbake.errors import RunFolderError, reading
 from nerfbake.eval.metrics import patch_dssim
 from nerfbake.progress import console, progress_bar
 from nerfbake.smerf.partition import Partition, PartitionError
@@ -113,14 +114,17 @@ def load_student(path: str | Path) -> tuple[Student, DistillConfig, dict]:
     path = Path(path)
     cfg_path = path / CONFIG
     if not cfg_path.is_file():
-        raise FileNotFoundError(f"{cfg_path}: missing; {path} is not a student folder (nerfbake distill --out)")
-    meta = json.loads(cfg_path.read_text())
-    if meta.get("kind") != "smerf-student":
-        raise ValueError(f"{cfg_path}: not a SMERF student (kind {meta.get('kind')!r}); pass the folder written by nerfbake distill")
-    cfg = config_from_dict(meta["distill"])
-    student = Student(cfg.student, Partition.from_json(meta["partition"]), cfg.seed)
+        raise RunFolderError(f"{cfg_path}: missing; {path} is not a student folder (nerfbake distill --out)")
+    with reading(cfg_path, RunFolderError, "pass the folder written by nerfbake distill, or distill again"):
+        meta = json.loads(cfg_path.read_text())
+        if not isinstance(meta, dict) or meta.get("kind") != "smerf-student":
+            kind = meta.get("kind") if isinstance(meta, dict) else None
+            raise RunFolderError(f"{cfg_path}: not a SMERF student (kind {kind!r}); pass the folder written by nerfbake distill")
+        cfg = config_from_dict(meta["distill"])
+        student = Student(cfg.student, Partition.from_json(meta["partition"]), cfg.seed)
     state = load_checkpoint(path / CHECKPOINT)
-    student.load_state_dict(state["model"])
+    with reading(path / CHECKPOINT, RunFolderError, "its config.json and checkpoint do not match; distill again"):
+        student.load_state_dict(state["model"])
     return student.eval(), cfg, meta
 
 
@@ -282,7 +286,7 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
     t_start = time.time()
     with Interrupt() as interrupt, progress_bar(f"distill K={cfg.k}", cfg.steps, unit="step") as advance:
         advance(start)
-        runlog = RunLog(out, dp.is_main, cfg.tensorboard)
+        runlog = RunLog(out, dp.is_main, cfg.tensorboard, start_step=start)
         try:
             while step < cfg.steps:
                 if interrupt.requested or (stop_at is not None and step >= stop_at):

@@ -38,7 +38,7 @@ def compare_across_boundary(student, teacher, ds, split: str, pairs: list[dict],
     into ``split``), for the student on the teacher's intervals and, given baked ``scene`` assets, for the viewer's
     picture. ``seamless``: home vs neighbour is closer than home vs teacher. Optional PNG rows (teacher | home |
     neighbour [| baked home | baked neighbour]) go to ``image_dir``."""
-    import imageio.v3 as iio
+    from nerfbake.atomic import write_image
 
     from nerfbake.eval.metrics import psnr
     from nerfbake.eval.views import to_png
@@ -71,8 +71,7 @@ def compare_across_boundary(student, teacher, ds, split: str, pairs: list[dict],
                             "neighbour_vs_teacher": db(b_nb, ref)}
             row += [b_home, b_nb]
         if image_dir is not None:
-            image_dir.mkdir(parents=True, exist_ok=True)
             name = f"boundary_k{student.partition.k}_{Path(rec['name']).name}.png"
-            iio.imwrite(image_dir / name, to_png(np.concatenate(row, 1)))
+            write_image(image_dir / name, to_png(np.concatenate(row, 1)))
         out.append(rec)
     return out

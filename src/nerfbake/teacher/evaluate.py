@@ -8,6 +8,7 @@ import imageio.v3 as iio
 import numpy as np
 import torch
 
+from nerfbake.atomic import atomic_folder, check_output_folder
 from nerfbake.data.cameras import Camera
 from nerfbake.data.formats import load_dataset
 from nerfbake.data.rays import CameraBatch, pixel_grid
@@ -78,19 +79,17 @@ def read_pose_file(path: Path) -> list[Camera]:
     return cams
 
 
-def render_poses(run: Path, pose_file: Path, out: Path) -> list[Path]:
+def render_poses(run: Path, pose_file: Path, out: Path, overwrite: bool = False) -> list[Path]:
+    """One PNG per pose in ``out`` (which appears only once every view is rendered)."""
+    out = Path(out)
+    check_output_folder(out, overwrite, "render")
     model, cfg, meta, _ = load_teacher(run)
     cams = read_pose_file(pose_file)
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
     bg = tuple(meta["dataset"]["background"] or (1.0, 1.0, 1.0))
-    written = []
-    with progress_bar("render", len(cams), unit="view") as advance:
-        for i, cam in enumerate(cams):
-            img = render_camera(model, cam, bg)
-            path = out / f"{i:04d}.png"
-            iio.imwrite(path, to_png(img["rgb"]))
-            written.append(path)
+    names = [f"{i:04d}.png" for i in range(len(cams))]
+    with atomic_folder(out, overwrite, "render") as tmp, progress_bar("render", len(cams), unit="view") as advance:
+        for name, cam in zip(names, cams):
+            iio.imwrite(tmp / name, to_png(render_camera(model, cam, bg)["rgb"]))
             advance()
-    (out / "poses.json").write_text(json.dumps({"source": str(pose_file), "count": len(cams)}))
-    return written
+        (tmp / "poses.json").write_text(json.dumps({"source": str(pose_file), "count": len(cams)}))
+    return [out / n for n in names]

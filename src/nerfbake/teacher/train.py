@@ -13,6 +13,7 @@ import torch
 from nerfbake.data.dataset import Dataset, object_box
 from nerfbake.data.formats import load_dataset
 from nerfbake.data.pixels import PixelStore
+from nerfbake.errors import RunFolderError, reading
 from nerfbake.progress import console, progress_bar
 from nerfbake.teacher.appearance import APPEARANCE_LR_SCALE, ImageAppearance, resolve_appearance
 from nerfbake.teacher.models import HashTeacherConfig, NeRFSHTeacherConfig, SceneBox, build_teacher
@@ -88,23 +89,22 @@ def load_teacher(run: Path):
     run = Path(run)
     cfg_path = run / CONFIG
     if not cfg_path.is_file():
-        raise FileNotFoundError(f"{cfg_path}: missing; {run} is not a teacher run folder (nerfbake teacher train --out)")
-    meta = json.loads(cfg_path.read_text())
-    if "train" not in meta:
-        raise ValueError(f"{cfg_path}: not a teacher run folder (it holds a {meta.get('kind', 'different kind of')} "
-                         "config); pass the --out folder of nerfbake teacher train")
-    try:
+        raise RunFolderError(f"{cfg_path}: missing; {run} is not a teacher run folder (nerfbake teacher train --out)")
+    with reading(cfg_path, RunFolderError, "retrain with this version, or pass the --out folder of nerfbake teacher train"):
+        meta = json.loads(cfg_path.read_text())
+        if not isinstance(meta, dict) or "train" not in meta:
+            kind = meta.get("kind", "different kind of") if isinstance(meta, dict) else "non-object"
+            raise RunFolderError(f"{cfg_path}: not a teacher run folder (it holds a {kind} config); pass the --out "
+                                 "folder of nerfbake teacher train")
         cfg = config_from_dict(meta["train"])
         box = SceneBox(**meta["box"])
-    except (KeyError, TypeError) as exc:
-        raise ValueError(f"{cfg_path}: incompatible teacher config ({exc}); retrain with this version") from None
+        model = build_teacher(cfg.field, cfg.model_config, box)
     state = load_checkpoint(run / CHECKPOINT)
-    model = build_teacher(cfg.field, cfg.model_config, box)
     try:
         model.load_state_dict(state["model"])
-    except (RuntimeError, KeyError) as exc:
+    except (RuntimeError, KeyError, TypeError) as exc:
         first = str(exc).splitlines()[0]
-        raise ValueError(f"{run / CHECKPOINT}: does not match {cfg_path} ({first}); retrain or restore the pair") from None
+        raise RunFolderError(f"{run / CHECKPOINT}: does not match {cfg_path} ({first}); retrain or restore the pair") from None
     model.to(default_device()).eval()
     return model, cfg, meta, state
 
@@ -213,7 +213,7 @@ def train_teacher(data: str | Path, out: str | Path, cfg: TeacherTrainConfig, re
     step = start
     with Interrupt() as interrupt, progress_bar(f"teacher {cfg.field}", cfg.steps, unit="step") as advance:
         advance(start)
-        runlog = RunLog(out, dp.is_main, cfg.tensorboard)
+        runlog = RunLog(out, dp.is_main, cfg.tensorboard, start_step=start)
         try:
             while step < cfg.steps:
                 if interrupt.requested or (stop_at is not None and step >= stop_at):

@@ -20,6 +20,7 @@ from pathlib import Path
 import torch
 import torch.distributed as dist
 
+from nerfbake import atomic
 from nerfbake.progress import console
 
 
@@ -56,30 +57,27 @@ def to_jsonable(obj):
 
 
 def write_json_atomic(path: Path, obj) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    tmp.write_text(json.dumps(to_jsonable(obj), indent=2))
-    os.replace(tmp, path)
+    atomic.write_json(path, to_jsonable(obj))
 
 
 def save_checkpoint(path: Path, state: dict) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
-    torch.save(state, tmp)
-    os.replace(tmp, path)
+    with atomic.atomic_file(path) as tmp:
+        torch.save(state, tmp)
 
 
 def load_checkpoint(path: Path) -> dict:
     path = Path(path)
+    """Tensors and plain containers only (``weights_only``): a checkpoint from elsewhere cannot run pickled code."""
+    from nerfbake.errors import RunFolderError
+
     if not path.is_file():
-        raise FileNotFoundError(f"{path}: no checkpoint here; train first or point --run at a training output folder")
+        raise RunFolderError(f"{path}: no checkpoint here; train first or point --run at a training output folder")
     try:
-        return torch.load(path, map_location="cpu", weights_only=False)
+        return torch.load(path, map_location="cpu", weights_only=True)
     except Exception as exc:  # torch raises many types for truncated/corrupt files
-        raise ValueError(f"{path}: cannot read the checkpoint ({type(exc).__name__}: {exc}); it is corrupt or "
-                         "from an incompatible version — retrain or restore it") from None
+        raise RunFolderError(f"{path}: cannot read the checkpoint ({type(exc).__name__}: {' '.join(str(exc).split())[:200]}); "
+                             "it is corrupt, from an incompatible version or holds more than tensors -- retrain or "
+                             "restore it") from None
 
 
 class Interrupt:
@@ -215,12 +213,30 @@ def tensorboard_writer(run: Path):
     return SummaryWriter(str(Path(run) / "tensorboard"))
 
 
+def trim_log(path: Path, last_step: int) -> None:
+    """Keep the records of ``path`` (JSON lines) up to ``last_step``, dropping later and torn ones; atomically."""
+    kept = []
+    for line in path.read_text().splitlines():
+        try:
+            rec = json.loads(line)
+        except json.JSONDecodeError:
+            continue  # a line torn by a kill mid-write
+        if isinstance(rec, dict) and rec.get("step", 0) <= last_step:
+            kept.append(line)
+    atomic.write_text(path, "".join(k + "\n" for k in kept))
+
+
 class RunLog:
     """A run's ``metrics.jsonl`` and, optionally, TensorBoard scalars (``train/*``, ``val/psnr``). Only the main
     rank of a data-parallel run writes; the others get a no-op log."""
 
-    def __init__(self, run: Path, enabled: bool = True, tensorboard: bool = False):
-        self.file = open(Path(run) / "metrics.jsonl", "a") if enabled else None
+    def __init__(self, run: Path, enabled: bool = True, tensorboard: bool = False, start_step: int = 0):
+        """``start_step``: the step the run (re)starts from; records after it, written by a run killed after its
+        last checkpoint, are dropped so a resumed log holds each step once."""
+        path = Path(run) / "metrics.jsonl"
+        if enabled and path.is_file():
+            trim_log(path, start_step)
+        self.file = open(path, "a") if enabled else None
         self.tb = tensorboard_writer(run) if enabled and tensorboard else None
 
     def train(self, rec: dict) -> None:

@@ -5,6 +5,7 @@ from pathlib import Path
 
 from nerfbake.data.dataset import Dataset
 from nerfbake.data.errors import DatasetError
+from nerfbake.errors import reading
 
 FORMATS = ("blender", "llff", "colmap", "transforms")
 
@@ -50,4 +51,5 @@ def load_dataset(root: str | Path, format: str | None = None, downscale: float =
         raise DatasetError(f"{root}: unknown dataset format {fmt!r}; choose one of {', '.join(FORMATS)}")
     if root.is_file():
         root = root.parent
-    return reader(root, downscale=downscale, **options)
+    with reading(root, DatasetError, "check the dataset's files (nerfbake data info shows what is read)"):
+        return reader(root, downscale=downscale, **options)

@@ -7,6 +7,7 @@ from pathlib import Path
 import numpy as np
 
 from nerfbake.data.errors import DatasetError
+from nerfbake.errors import reading
 
 _TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2", "ushort": "u2",
           "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4", "float": "f4", "float32": "f4",
@@ -16,6 +17,16 @@ _TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2
 def read_ply_points(path: Path) -> np.ndarray:
     """(N, 3) float64 vertex positions; a clear error for a file that is not a readable PLY point list."""
     path = Path(path)
+    with reading(path, DatasetError, "re-export the point cloud (e.g. `nerfbake process` writes one)"):
+        points = _read_ply_points(path)
+    bad = ~np.isfinite(points).all(-1)
+    if bad.any():
+        raise DatasetError(f"{path}: {int(bad.sum())} of {len(points)} points are NaN or infinite (first at vertex "
+                           f"{int(np.argmax(bad))}); remove them or re-export the point cloud")
+    return points
+
+
+def _read_ply_points(path: Path) -> np.ndarray:
     data = path.read_bytes()
     end = data.find(b"end_header")
     if not data.startswith(b"ply") or end < 0:

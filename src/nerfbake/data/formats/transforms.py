@@ -43,13 +43,20 @@ def _intrinsics(fields: dict, path: Path, where: str, image_path: Path) -> Camer
     if w is None or h is None:
         w, h = image_size(image_path)
     fx, fy = num("fl_x"), num("fl_y")
-    if fx is None and num("camera_angle_x") is not None:
-        fx = 0.5 * w / math.tan(0.5 * num("camera_angle_x"))
-    if fy is None and num("camera_angle_y") is not None:
-        fy = 0.5 * h / math.tan(0.5 * num("camera_angle_y"))
+    if not (w >= 1 and h >= 1):
+        raise DatasetError(f"{path}: image size {w} x {h}{where} is not positive; fix 'w'/'h'")
+    for key, size in (("camera_angle_x", w), ("camera_angle_y", h)):
+        angle = num(key)
+        if angle is not None and not 0 < angle < math.pi:
+            raise DatasetError(f"{path}: {key!r}{where} must be in (0, pi) radians, got {angle}")
+        if angle is not None and (fx if key.endswith("x") else fy) is None:
+            f = 0.5 * size / math.tan(0.5 * angle)
+            fx, fy = (f, fy) if key.endswith("x") else (fx, f)
     if fx is None and fy is None:
         raise DatasetError(f"{path}: no focal length{where}; give fl_x/fl_y or camera_angle_x")
     fx, fy = fx or fy, fy or fx
+    if not (fx > 0 and fy > 0):
+        raise DatasetError(f"{path}: focal length fl_x {fx} / fl_y {fy}{where} must be positive")
     dist = {k: num(k, 0.0) for k in ("k1", "k2", "k3", "k4", "p1", "p2")}
     model = str(fields.get("camera_model", "OPENCV" if any(dist.values()) else "PINHOLE"))
     if model == "OPENCV" and (dist["k3"] or dist["k4"]):
