@@ -9,7 +9,8 @@ from tests.helpers import tiny_config, tiny_distill_config
 
 
 def tiny_pipeline(scene, out, **kw) -> PipelineConfig:
-    return PipelineConfig(data=str(scene), out=str(out), eval_views=2, teacher=replace(tiny_config(steps=40), checkpoint_every=1000),
+    kw = {"eval_views": 2, **kw}
+    return PipelineConfig(data=str(scene), out=str(out), teacher=replace(tiny_config(steps=40), checkpoint_every=1000),
                           distill=replace(tiny_distill_config(steps=30), checkpoint_every=5), octree_grid=32,
                           octree_epochs=1, octree_lr=1e5, bake_stride=1, **kw)
 
@@ -49,13 +50,28 @@ def test_pipeline_resumes_an_interrupted_distillation_and_reports_every_method(t
     assert "not a `nerfbake pipeline` run" in capsys.readouterr().err
 
 
-def test_pipeline_refuses_a_run_folder_made_with_other_settings(tiny_scene, tmp_path):
+def test_a_changed_setting_reruns_its_stage_and_everything_downstream_and_says_why(tiny_scene, tmp_path):
     import pytest
 
+    from nerfbake.errors import NerfbakeError
+
     run = tmp_path / "run"
-    run_pipeline(tiny_pipeline(tiny_scene, run, methods=("octree",)), stop_after="teacher")
-    with pytest.raises(ValueError, match="different k"):
-        run_pipeline(tiny_pipeline(tiny_scene, run, k=2))
+    run_pipeline(tiny_pipeline(tiny_scene, run, methods=("octree",)), stop_after="teacher_eval")
+    teacher_ckpt = (run / "teacher" / "checkpoint.pt").stat().st_mtime_ns
+    log = []
+    run_pipeline(tiny_pipeline(tiny_scene, run, methods=("octree",), eval_views=3), stop_after="teacher_eval", log=log.append)
+    assert any("teacher: done before" in line for line in log), log
+    assert any("teacher_eval: runs again: eval_views 2 -> 3" in line for line in log), log
+    assert json.loads((run / "stages" / "teacher_eval.json").read_text())["result"]["num_views"] == 3
+    assert (run / "teacher" / "checkpoint.pt").stat().st_mtime_ns == teacher_ckpt
+    log = []
+    run_pipeline(tiny_pipeline(tiny_scene, run, methods=("octree",), eval_views=3, teacher_steps=20),
+                 stop_after="teacher_eval", log=log.append)
+    assert any("teacher: runs again: teacher_steps None -> 20" in line for line in log), log
+    assert any("teacher_eval: runs again: teacher ran again" in line for line in log), log
+    assert json.loads((run / "teacher" / "config.json").read_text())["steps_done"] == 20  # trained afresh, not resumed
+    with pytest.raises(NerfbakeError, match="no such stage.*teacher_eval"):
+        run_pipeline(tiny_pipeline(tiny_scene, run), stop_after="octree_evaluate")
     with pytest.raises(ValueError, match="unknown method"):
         run_pipeline(tiny_pipeline(tiny_scene, tmp_path / "x", methods=("nerf",)))
 

@@ -1,10 +1,13 @@
 """``nerfbake pipeline``: teacher -> PlenOctree (build, fine-tune, compress) -> SMERF (distil, bake) -> evaluation of
 every method on the same held-out views -> report.
 
-Each stage writes into its own folder under the run and, when it finishes, a record ``RUN/stages/<name>.json``
-(its result, the settings it ran with, the seconds it took). A re-run skips recorded stages and resumes the
-interrupted one: teacher training and distillation continue from their last checkpoint, file-producing stages
-write to a temporary name and rename, so a crash never leaves a file that looks finished.
+Each stage writes into its own folder under the run and a record ``RUN/stages/<name>.json`` (its result, the
+settings it ran with, the seconds it took, and a fingerprint: a hash of the settings it depends on, of the data's
+files for the teacher, and of the fingerprints of the stages it reads). A re-run skips a finished stage whose
+fingerprint is unchanged and resumes an interrupted one: teacher training and distillation continue from their last
+checkpoint, file-producing stages write to a temporary name and rename, so a crash never leaves a file that looks
+finished. A stage whose fingerprint changed (a different ``--teacher-steps``, ``--octree-grid``, ``--eval-views``,
+data...) runs again from scratch, and so does everything downstream of it, each saying why.
 
 Under ``torchrun`` the training stages (teacher, distillation) run data-parallel on every rank, octree building
 deals its grid slabs, cameras and leaf chunks out over the ranks, and baking its submodels; the other stages run on
@@ -12,12 +15,15 @@ rank 0 while the other ranks wait at a barrier.
 """
 from __future__ import annotations
 
+import hashlib
 import json
+import shutil
 import time
 from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable
 
+from nerfbake.errors import NerfbakeError
 from nerfbake.train.loop import DataParallel, write_json_atomic
 
 METHODS = ("octree", "smerf")
@@ -58,6 +64,9 @@ class Stage:
     method: str  # "teacher", "octree" or "smerf": which --methods entry needs it
     run: Callable[["PipelineConfig", Path], dict]
     parallel: bool = False  # every rank takes part (data-parallel training); otherwise rank 0 only
+    keys: tuple[str, ...] = ()  # the PipelineConfig fields its result depends on (with the preset they resolve its config)
+    after: tuple[str, ...] = ()  # the stages whose outputs it reads
+    output: str | None = None  # folder under the run that a changed stage starts afresh in (trainers resume otherwise)
 
 
 def resolve_downscale(cfg: PipelineConfig) -> tuple[float, str]:
@@ -239,29 +248,73 @@ def metrics_of(r: dict) -> dict:
     return {"psnr": r["psnr"], "ssim": r["ssim"], "lpips": r[f"lpips_{net}"], "lpips_net": net, "num_views": r["num_views"]}
 
 
+EVAL_KEYS = ("data", "downscale", "eval_views", "timing_repeats")
 STAGES = [
-    Stage("teacher", "teacher", run_teacher, parallel=True),
-    Stage("teacher_eval", "teacher", eval_teacher),
-    Stage("octree_build", "octree", run_octree_build, parallel=True),
-    Stage("octree_optimize", "octree", run_octree_optimize),
-    Stage("octree_compress", "octree", run_octree_compress),
-    Stage("octree_eval", "octree", eval_octree),
-    Stage("distill", "smerf", run_distill, parallel=True),
-    Stage("student_eval", "smerf", eval_student),
-    Stage("bake", "smerf", run_bake, parallel=True),
-    Stage("assets_eval", "smerf", eval_assets),
+    Stage("teacher", "teacher", run_teacher, parallel=True,
+          keys=("data", "preset", "field", "downscale", "teacher_steps", "teacher"), output="teacher"),
+    Stage("teacher_eval", "teacher", eval_teacher, keys=EVAL_KEYS, after=("teacher",)),
+    Stage("octree_build", "octree", run_octree_build, parallel=True, keys=("preset", "octree_grid"), after=("teacher",)),
+    Stage("octree_optimize", "octree", run_octree_optimize,
+          keys=("data", "preset", "downscale", "octree_epochs", "octree_lr"), after=("octree_build",)),
+    Stage("octree_compress", "octree", run_octree_compress, after=("octree_optimize",)),
+    Stage("octree_eval", "octree", eval_octree, keys=EVAL_KEYS, after=("octree_build", "octree_optimize", "octree_compress")),
+    Stage("distill", "smerf", run_distill, parallel=True,
+          keys=("preset", "k", "distill_steps", "student_sparse", "student_triplane", "distill"), after=("teacher",),
+          output="smerf/student"),
+    Stage("student_eval", "smerf", eval_student, keys=EVAL_KEYS, after=("distill",)),
+    Stage("bake", "smerf", run_bake, parallel=True, keys=("bake_stride",), after=("distill",)),
+    Stage("assets_eval", "smerf", eval_assets, keys=EVAL_KEYS, after=("bake",)),
 ]
+STAGE_NAMES = [s.name for s in STAGES]
 
 
 # --- running -----------------------------------------------------------------------------------------------------------
 
-def stage_record(run: Path, name: str) -> dict | None:
+def stage_record(run: Path, name: str, complete_only: bool = True) -> dict | None:
     path = run / "stages" / f"{name}.json"
     if path.is_file():
-        rec = json.loads(path.read_text())
-        if rec.get("complete"):
+        try:
+            rec = json.loads(path.read_text())
+        except json.JSONDecodeError:
+            return None
+        if isinstance(rec, dict) and (rec.get("complete") or not complete_only):
             return rec
     return None
+
+
+def data_fingerprint(data: str | Path) -> list:
+    """What identifies a dataset cheaply: its resolved path and the size and mtime of its top-level and ``sparse/*``
+    files (poses, intrinsics, point clouds live there; images are named by them)."""
+    root = Path(data).resolve()
+    base = root if root.is_dir() else root.parent
+    files = [p for p in base.iterdir() if p.is_file()] if base.is_dir() else []
+    files += [p for p in base.glob("sparse/*/*") if p.is_file()]
+    return [str(root)] + sorted([str(p.relative_to(base)), p.stat().st_size, p.stat().st_mtime_ns] for p in files)
+
+
+def stage_settings(stage: Stage, settings: dict) -> dict:
+    return {k: settings[k] for k in stage.keys}
+
+
+def fingerprints(stages: list[Stage], settings: dict) -> dict[str, str]:
+    out = {}
+    for stage in stages:
+        body = {"settings": stage_settings(stage, settings), "after": [out.get(a) for a in stage.after]}
+        if stage.name == "teacher":
+            body["data_files"] = data_fingerprint(settings["data"])
+        out[stage.name] = hashlib.sha256(json.dumps(body, sort_keys=True, default=str).encode()).hexdigest()[:16]
+    return out
+
+
+def why_changed(stage: Stage, old: dict, settings: dict, rerun: set[str]) -> str:
+    """One line: which settings or upstream stages make a recorded stage stale."""
+    if "fingerprint" not in old:
+        return "recorded by an older nerfbake without stage fingerprints"
+    before, now = old.get("settings", {}), stage_settings(stage, settings)
+    diffs = [f"{k} {before.get(k)!r} -> {now[k]!r}" for k in now if before.get(k) != now[k]]
+    ups = [a for a in stage.after if a in rerun]
+    parts = ([", ".join(diffs)] if diffs else []) + ([f"{', '.join(ups)} ran again"] if ups else [])
+    return "; ".join(parts) or "its data files changed"
 
 
 def run_pipeline(cfg: PipelineConfig, stop_after: str | None = None, log: Callable[[str], None] = print) -> dict:
@@ -272,37 +325,44 @@ def run_pipeline(cfg: PipelineConfig, stop_after: str | None = None, log: Callab
     run = Path(cfg.out)
     dp = DataParallel()
     stages = [s for s in STAGES if s.method == "teacher" or s.method in cfg.methods]
+    if stop_after is not None and stop_after not in [s.name for s in stages]:
+        raise NerfbakeError(f"--stop-after {stop_after!r}: no such stage in this run; choose one of "
+                            f"{', '.join(s.name for s in stages)}")
     downscale, why = resolve_downscale(cfg)
     cfg = replace(cfg, downscale=downscale, downscale_why=why)
     log(f"pipeline: {why}")
     settings = asdict(cfg)
+    prints = fingerprints(stages, settings)
     if dp.is_main:
         run.mkdir(parents=True, exist_ok=True)
-        prev = run / "pipeline.json"
-        if prev.is_file():
-            old = json.loads(prev.read_text()).get("config", {})
-            changed = {k for k in ("data", "preset", "k", "field", "downscale") if k in old and old[k] != settings[k]}
-            if changed:
-                raise ValueError(f"{prev}: this run was made with different {', '.join(sorted(changed))}; "
-                                 "use a new --out folder (or delete this one) to start over")
-        write_json_atomic(prev, {"config": settings, "stages": [s.name for s in stages]})
+        write_json_atomic(run / "pipeline.json", {"config": settings, "stages": [s.name for s in stages]})
     t_start = time.perf_counter()
     said = set()  # methods whose skip reason was printed
+    rerun: set[str] = set()  # stages run in this invocation (their dependants are stale)
     for i, stage in enumerate(stages, 1):
-        rec = stage_record(run, stage.name)
         prefix = f"pipeline [{i}/{len(stages)}] {stage.name}"
-        if rec is not None:
-            log(f"{prefix}: done before ({rec['seconds']:.0f} s), skipped")
+        record = {"fingerprint": prints[stage.name], "settings": stage_settings(stage, settings)}
+        old = stage_record(run, stage.name, complete_only=False)
+        if old is not None and old.get("fingerprint") == prints[stage.name] and old.get("complete"):
+            log(f"{prefix}: done before ({old['seconds']:.0f} s), skipped")
             continue
+        if old is not None and old.get("fingerprint") != prints[stage.name]:
+            log(f"{prefix}: runs again: {why_changed(stage, old, settings, rerun)}")
+            if dp.is_main and stage.output and (run / stage.output).exists():
+                shutil.rmtree(run / stage.output)  # a stale training run must not be resumed
+            dp.barrier()
+        rerun.add(stage.name)
         reason = skip_reason(stage, run)
         if reason is not None:
             log(f"{prefix}: skipped" + (f" (the {stage.method} route, above)" if stage.method in said else f": {reason}"))
             said.add(stage.method)
             if dp.is_main:
                 write_json_atomic(run / "stages" / f"{stage.name}.json",
-                                  {"complete": True, "seconds": 0.0, "result": None, "skipped": reason})
+                                  {"complete": True, "seconds": 0.0, "result": None, "skipped": reason, **record})
             continue
         log(f"{prefix}: running (total elapsed {time.perf_counter() - t_start:.0f} s)")
+        if dp.is_main:  # an interrupted stage with this record resumes; one with another fingerprint starts over
+            write_json_atomic(run / "stages" / f"{stage.name}.json", {"complete": False, **record})
         t = time.perf_counter()
         result = None
         if stage.parallel or dp.is_main:
@@ -310,7 +370,7 @@ def run_pipeline(cfg: PipelineConfig, stop_after: str | None = None, log: Callab
         dp.barrier()
         if dp.is_main:
             write_json_atomic(run / "stages" / f"{stage.name}.json", {
-                "complete": True, "seconds": time.perf_counter() - t, "result": result})
+                "complete": True, "seconds": time.perf_counter() - t, "result": result, **record})
         dp.barrier()
         if stop_after == stage.name:
             log(f"{prefix}: stopping here as asked")
@@ -331,9 +391,8 @@ def collect_results(run: Path) -> dict:
     rows = []
     stages = {}
     for stage in STAGES:  # in pipeline order
-        path = run / "stages" / f"{stage.name}.json"
-        if path.is_file():
-            rec = json.loads(path.read_text())
+        rec = stage_record(run, stage.name)
+        if rec is not None:
             stages[stage.name] = {"seconds": rec["seconds"], "result": rec["result"],
                                   **({"skipped": rec["skipped"]} if rec.get("skipped") else {})}
     for name in ("teacher_eval", "octree_eval", "student_eval", "assets_eval"):
