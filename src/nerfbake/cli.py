@@ -9,6 +9,7 @@ import json
 import sys
 from pathlib import Path
 
+from nerfbake import __version__
 from nerfbake.atomic import atomic_folder, check_output_file, check_output_folder
 
 
@@ -417,6 +418,7 @@ def cmd_smerf_render(args) -> int:
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="nerfbake", description=__doc__.splitlines()[0])
     parser.add_argument("--debug", action="store_true", help="show the full traceback of an error")
+    parser.add_argument("--version", action="version", version=f"nerfbake {__version__}")
     sub = parser.add_subparsers(dest="command", required=True)
 
     data = sub.add_parser("data", help="inspect datasets").add_subparsers(dest="data_command", required=True)
@@ -641,6 +643,9 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument("--distill-config", help="a distillation config JSON instead of the preset")
     pl.add_argument("--stop-after", help="stop after this stage (e.g. to test resuming)")
     pl.set_defaults(func=cmd_pipeline)
+    dr = sub.add_parser("doctor", help="what this machine gives nerfbake: Python, torch build and device, Warp, "
+                        "Mitsuba's libLLVM, pycolmap, LPIPS weights, chromium, free disk")
+    dr.set_defaults(func=cmd_doctor)
     rp = sub.add_parser("report", help="write RUN/report.md (table, plots) from a pipeline run")
     rp.add_argument("run")
     rp.set_defaults(func=cmd_report)
@@ -659,6 +664,17 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--methods", default="octree,smerf", help="comma-separated subset of octree,smerf")
     demo.set_defaults(func=cmd_demo)
     return parser
+
+
+def cmd_doctor(args) -> int:
+    from nerfbake.doctor import run_checks
+
+    checks = run_checks()
+    for c in checks:
+        print(c.line())
+    missing = [c.name for c in checks if c.required and not c.ok]
+    print("everything nerfbake needs is here" if not missing else f"missing: {', '.join(missing)}")
+    return 0 if not missing else 1
 
 
 def cmd_view(args) -> int:
