@@ -9,7 +9,7 @@ import pytest
 from PIL import Image
 
 from nerfbake.data.formats import detect_format, load_dataset
-from nerfbake.data.formats.colmap import read_points3d_binary
+from nerfbake.data.formats.colmap_model import read_points3d_binary
 from nerfbake.data.rays import camera_rays
 
 

@@ -124,3 +124,17 @@ def opencv_to_opengl(c2w: np.ndarray) -> np.ndarray:
     out = np.array(c2w, dtype=np.float64, copy=True)
     out[..., :3, 1:3] *= -1
     return out
+
+
+def pose_problem(c2w: np.ndarray) -> str | None:
+    """Why a camera-to-world matrix cannot be a camera pose (non-finite, absurdly large, a rotation part that is
+    not a rotation up to a loose scale), or None. Garbage poses otherwise reach least-squares fits that hang."""
+    m = np.asarray(c2w, dtype=np.float64)
+    if m.shape[-2:] not in ((4, 4), (3, 4)) or not np.isfinite(m).all():
+        return "not a finite 3x4 or 4x4 matrix"
+    if np.abs(m[:3, 3]).max() > 1e7:
+        return f"camera position {m[:3, 3].tolist()} is implausibly far from the origin"
+    norms = np.linalg.norm(m[:3, :3], axis=0)
+    if not np.all((norms > 0.5) & (norms < 2.0)) or abs(np.linalg.det(m[:3, :3] / norms)) < 0.9:
+        return "its 3x3 rotation part is not a rotation (columns of length 1, orthogonal)"
+    return None

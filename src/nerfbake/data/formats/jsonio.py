@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 
+from nerfbake.data.cameras import pose_problem
 from nerfbake.data.errors import DatasetError
 
 
@@ -39,6 +40,9 @@ def pose_of(frame: dict, path: Path, index: int) -> np.ndarray:
         raise DatasetError(f"{path}: frame {index} 'transform_matrix' must be a finite 4x4 matrix, got shape {m.shape}")
     if m.shape == (3, 4):
         m = np.vstack([m, [0, 0, 0, 1.0]])
+    problem = pose_problem(m)
+    if problem:
+        raise DatasetError(f"{path}: frame {index} 'transform_matrix': {problem}")
     return m
 
 

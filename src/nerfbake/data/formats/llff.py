@@ -11,7 +11,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nerfbake.data.cameras import Camera
+from nerfbake.data.cameras import Camera, pose_problem
 from nerfbake.data.dataset import Dataset, Frame, check_downscale, every_nth_split, finish_frames
 from nerfbake.data.errors import DatasetError
 from nerfbake.data.images import IMAGE_EXTENSIONS, image_size
@@ -80,6 +80,12 @@ def read_llff(root: Path, downscale: float = 1.0, normalize: str = "auto") -> Da
         raise DatasetError(f"{paths[0]}: image is {w}x{h}, which is not a scaled copy of the {w_full:.0f}x{h_full:.0f} in {pb_path.name}")
     f = focal_full * folder_scale
     c2ws = llff_to_opengl(poses[:, :, :4])
+    for i, c2w in enumerate(c2ws):
+        problem = pose_problem(c2w)
+        if problem:
+            raise DatasetError(f"{pb_path}: pose {i}: {problem}")
+    if not (np.all(bounds > 0) and np.all(poses[:, :, 4] > 0)):
+        raise DatasetError(f"{pb_path}: near/far bounds and the height, width, focal column must be positive")
     norm = choose_normalization(normalize, c2ws, root, near=float(bounds.min()))
     frames = [
         Frame(name=p.name, image_path=p, camera=Camera(c2w, w, h, f, f, w / 2.0, h / 2.0, "SIMPLE_PINHOLE"))
