@@ -119,3 +119,47 @@ def test_a_method_that_cannot_run_on_a_scene_is_skipped_with_a_reason(tmp_path):
         assert (reason is not None) == skipped and skip_reason(smerf, tmp_path) is None
         if skipped:
             assert "forward-facing" in reason and "SMERF" in reason
+
+
+def test_a_pipeline_killed_at_random_moments_resumes_to_the_uninterrupted_results(tiny_scene, tmp_path):
+    """SIGKILL (no chance to clean up) at three random moments, then a run to the end: the same figures as a run
+    never interrupted, and no temporary files left behind."""
+    import os
+    import random
+    import signal
+    import subprocess
+    import sys
+    import time
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    code = ("import sys; from pathlib import Path; from tests.test_pipeline import tiny_pipeline; "
+            "from nerfbake.pipeline import run_pipeline; "
+            "run_pipeline(tiny_pipeline(Path(sys.argv[1]), Path(sys.argv[2])), log=lambda line: None)")
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+
+    def start(out):
+        return subprocess.Popen([sys.executable, "-c", code, str(tiny_scene), str(out)], cwd=root, env=env,
+                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+
+    t = time.perf_counter()
+    whole = start(tmp_path / "whole")
+    assert whole.wait() == 0, whole.stderr.read()
+    seconds = time.perf_counter() - t
+    rng = random.Random(0)
+    killed = tmp_path / "killed"
+    for _ in range(3):
+        proc = start(killed)
+        time.sleep(rng.uniform(0.1, 0.9) * seconds)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait()
+    proc = start(killed)
+    assert proc.wait() == 0, proc.stderr.read()
+
+    def figures(run):
+        rows = json.loads((run / "results.json").read_text())["methods"]
+        return {r["method"]: (round(r["psnr"], 4), round(r["ssim"], 5), r["num_views"]) for r in rows}
+
+    assert figures(killed) == figures(tmp_path / "whole")
+    leftovers = [p for p in killed.rglob(".*") if ".tmp-" in p.name or ".old-" in p.name]
+    assert not leftovers, leftovers

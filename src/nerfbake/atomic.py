@@ -72,6 +72,7 @@ def atomic_file(path: str | Path):
     """Yields a temporary path beside ``path`` to write; on success it replaces ``path``, on error it is removed."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
+    remove_stale_temps(path)
     tmp = temp_name(path)
     try:
         yield tmp

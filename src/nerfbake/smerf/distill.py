@@ -59,7 +59,6 @@ class DistillConfig:
     mlp_tv_mult: float = 0.1
     empty_space_mult: float = 1.0
     empty_space_points: int = 1 << 15
-    empty_space_on_rays: float = 0.5  # fraction of those points drawn along the step's rays (see empty_space_loss)
     consistency_mult: float = 1.0  # K > 1 only
     jitter_origin: float = 0.03  # Gaussian sigma, partition-cube units (per ray)
     jitter_direction: float = 0.03  # per patch
@@ -133,58 +132,24 @@ def charbonnier(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return torch.sqrt(1e-6 + (a - b) ** 2).mean()
 
 
-def empty_space_loss(student: Student, teacher, num_points: int, gen: torch.Generator, quantize: bool,
-                     along_rays: dict | None = None, ray_fraction: float = 0.0) -> torch.Tensor:
+def empty_space_loss(student: Student, teacher, num_points: int, gen: torch.Generator, quantize: bool) -> torch.Tensor:
     """Mean |alpha_student - alpha_teacher| at the viewer's step length, at random points of every submodel's
-    contracted volume (half of them in the uncontracted core) and, with ``along_rays`` (the step's rays and the
-    teacher's intervals on them), a ``ray_fraction`` of the points along the training rays. The ray losses only
-    ever see the teacher's intervals; without this the grids keep arbitrary density wherever the teacher never
-    sampled, and the baked scene, which the viewer marches densely, shows it as floaters (the role of the authors'
-    sparsity loss). Uniform points alone are too thin in a room: at S = 256 a few hundred steps visit each cell
-    about once, and the free space in front of every surface a camera sees stays foggy; points on the rays put the
-    supervision where the views look."""
+    contracted volume (half of them in the uncontracted core). The ray losses only ever see the teacher's
+    intervals; without this the grids keep arbitrary density wherever the teacher never sampled, and the baked
+    scene, which the viewer marches densely, shows it as floaters (the role of the authors' sparsity loss)."""
     dev = student.sparse.device
-    n_ray = int(num_points * ray_fraction) if along_rays is not None else 0
-    n = num_points - n_ray
+    n = num_points
     z = torch.rand(n, 3, generator=gen) * 4 - 2
     z[: n // 2] *= 0.5
     sm = torch.randint(0, student.partition.num_alive, (n,), generator=gen)
     z, sm = z.to(dev), sm.to(dev)
     world = student.world_from_contracted(z, sm)
-    stretch = uncontract_norm(z)
-    if n_ray > 0:
-        w_r, sm_r = points_along_rays(along_rays, n_ray, 1.0 / student.partition.scale, gen)
-        z_r, stretch_r = student.contracted(w_r, sm_r)
-        z, sm, world, stretch = (torch.cat(p) for p in ((z, z_r), (sm, sm_r), (world, w_r), (stretch, stretch_r)))
     with torch.no_grad():
         sigma_t = teacher.density_at(world)
-    step = student.realtime_step(stretch)
+    step = student.realtime_step(uncontract_norm(z))
     alpha_t = 1 - torch.exp(-sigma_t * step / student.partition.scale)  # teacher sigma is per world unit
     alpha_s = 1 - torch.exp(-student.features(z, sm, quantize)["density"] * step)
     return (alpha_s - alpha_t).abs().mean()
-
-
-def points_along_rays(rays: dict, num_points: int, inner: float, gen: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
-    """(world points, submodel index) at random depths on random rays of ``rays`` (origins, directions, params_idx
-    and the teacher's packed t0/t1/ray_idx), between each ray's first and last teacher interval: half uniform in
-    depth up to ``inner`` (the partition cube's half-width, where the cameras are), half uniform in disparity
-    beyond, as the student's contraction spends its resolution."""
-    o, d, pidx = rays["origins"], rays["directions"], rays["params_idx"]
-    dev = o.device
-    r = o.shape[0]
-    near = torch.full((r,), float("inf"), device=dev).scatter_reduce(0, rays["ray_idx"], rays["t0"], "amin")
-    far = torch.zeros(r, device=dev).scatter_reduce(0, rays["ray_idx"], rays["t1"], "amax")
-    valid = torch.nonzero(far > near).squeeze(-1)
-    if valid.numel() == 0:
-        return o[:0], pidx[:0]
-    pick = valid[torch.randint(0, valid.numel(), (num_points,), generator=gen).to(dev)]
-    u = torch.rand(num_points, generator=gen).to(dev)
-    lo, hi = near[pick], far[pick]
-    inner_t = lo + (inner - lo).clamp_min(0) * (2 * u)
-    outer_t = 1.0 / (1.0 / inner + (1.0 / hi - 1.0 / inner) * (2 * u - 1))
-    t = torch.where(u < 0.5, inner_t, outer_t)
-    t = torch.minimum(torch.maximum(t, lo), hi)
-    return o[pick] + t[:, None] * d[pick], pidx[pick]
 
 
 def uncontract_norm(z: torch.Tensor) -> torch.Tensor:
@@ -323,9 +288,7 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
                 loss = share * (cfg.rgb_mult * rgb_l + cfg.dssim_mult * ssim_l + cfg.geometry_weight(step) * geo_l)
                 loss = loss + cfg.mlp_tv_mult * student.mlp.tv_loss() / dp.world
                 if cfg.empty_space_mult > 0:
-                    empty_l = empty_space_loss(student, teacher, cfg.empty_space_points, gen, cfg.quantize,
-                                               {"origins": o, "directions": d, "params_idx": pidx, **tout},
-                                               cfg.empty_space_on_rays)
+                    empty_l = empty_space_loss(student, teacher, cfg.empty_space_points, gen, cfg.quantize)
                     loss = loss + cfg.empty_space_mult * empty_l / dp.world
                 terms = {"rgb": float(rgb_l.detach()), "dssim": float(ssim_l.detach()), "geometry": float(geo_l.detach())}
                 if cfg.empty_space_mult > 0:
