@@ -187,32 +187,76 @@ def student_folder_that_is_a_teacher(tmp):
     return ["bake", "--student", run, "--out", tmp / "out"], run / "config.json"
 
 
-def corrupt_checkpoint(tmp):
+def student_folder(tmp) -> Path:
+    """A student folder whose config.json is valid (a tiny student), so that what fails is its checkpoint."""
+    from nerfbake.smerf.distill import DistillConfig
+    from nerfbake.smerf.partition import Partition
+    from nerfbake.smerf.student import StudentConfig
+    from nerfbake.train.loop import to_jsonable
+
     run = tmp / "run"
     run.mkdir()
-    (run / "config.json").write_text(json.dumps({"kind": "smerf-student", "distill": {"student": {}},
-                                                 "partition": {"k": 1}}))
+    cfg = DistillConfig(student=StudentConfig(sparse_resolution=8, triplane_resolution=16))
+    part = Partition.from_cameras(np.array([[0.0, 0, 0], [1, 1, 1]]), 1)
+    (run / "config.json").write_text(json.dumps({"kind": "smerf-student", "distill": to_jsonable(cfg),
+                                                 "partition": part.to_json()}))
+    return run
+
+
+def corrupt_checkpoint(tmp):
+    run = student_folder(tmp)
     (run / "student.pt").write_bytes(b"PK\x03\x04 truncated")
-    return ["bake", "--student", run, "--out", tmp / "out"], run
+    return ["bake", "--student", run, "--out", tmp / "out"], run / "student.pt"
+
+
+class _RunsCode:
+    def __reduce__(self):
+        return (print, ("this ran while loading a checkpoint",))
+
+
+def checkpoint_with_pickled_code(tmp):
+    import torch
+
+    run = student_folder(tmp)
+    torch.save({"model": {}, "payload": _RunsCode()}, run / "student.pt")
+    return ["bake", "--student", run, "--out", tmp / "out"], run / "student.pt"
+
+
+def synth_into_a_full_folder(tmp):
+    existing = tmp / "existing"
+    existing.mkdir()
+    (existing / "keep.txt").write_text("mine")
+    return ["synth", "--scene", "objects", "--out", existing, "--views", 1, "--width", 8, "--height", 8], existing
+
+
+def tree_onto_an_existing_file(tmp):
+    existing = tmp / "existing.npz"
+    existing.write_bytes(b"mine")
+    return ["octree", "build", "--teacher", tmp / "no_teacher", "--out", existing], existing
 
 
 ROWS = [truncated_mlp, truncated_params_gz, params_without_asset_metadata, params_not_an_object, nan_in_deferred_mlp,
         truncated_raw_gz, corrupt_deflate_member, corrupt_npy_header, data_dim_not_scalar, child_of_wrong_dtype,
         missing_tree, zero_camera_angle, nan_in_a_camera, nan_in_ply_points, image_that_is_not_an_image,
-        empty_folder_as_dataset, run_folder_of_the_wrong_kind, student_folder_that_is_a_teacher, corrupt_checkpoint]
+        empty_folder_as_dataset, run_folder_of_the_wrong_kind, student_folder_that_is_a_teacher, corrupt_checkpoint,
+        checkpoint_with_pickled_code, synth_into_a_full_folder, tree_onto_an_existing_file]
 
 
 @pytest.mark.parametrize("row", ROWS, ids=[r.__name__ for r in ROWS])
 def test_bad_input_is_one_line_naming_the_file(row, tmp_path, capsys):
     argv, broken = row(tmp_path)
     code = main([str(a) for a in argv])
-    err = capsys.readouterr().err
+    out, err = capsys.readouterr()
+    assert "this ran while loading" not in out
     lines = [line for line in err.splitlines() if line.startswith("error")]  # progress bars may share stderr
     assert code == 2, err
     assert len(lines) == 1 and "Traceback" not in err, err
     assert str(broken) in lines[0] or broken.name in lines[0], lines[0]
     assert "bug in nerfbake" not in lines[0], lines[0]
     assert not (tmp_path / "out").exists() and not (tmp_path / "r").exists(), "a half-written output"
+    existing = tmp_path / "existing"
+    if existing.is_dir():
+        assert [p.name for p in existing.iterdir()] == ["keep.txt"], "an existing output was touched"
 
 
 def test_debug_shows_the_traceback(tmp_path):
