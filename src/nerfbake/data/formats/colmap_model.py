@@ -118,9 +118,12 @@ def _image(path, image_id, q, t, camera_id, name) -> ColmapImage:
     q = _finite(path, q, f"image {image_id}'s rotation")
     if not name:
         raise DatasetError(f"{path}: image {image_id} has an empty name")
-    if np.linalg.norm(q) < 1e-8:
-        raise DatasetError(f"{path}: image {image_id} ({name}) has a zero rotation quaternion")
-    return ColmapImage(image_id, name, camera_id, q, _finite(path, t, f"image {image_id}'s translation"))
+    if not 1e-8 < np.abs(q).max() < 1e8:
+        raise DatasetError(f"{path}: image {image_id} ({name}) has a degenerate rotation quaternion {q.tolist()}")
+    t = _finite(path, t, f"image {image_id}'s translation")
+    if np.abs(t).max() > 1e7:
+        raise DatasetError(f"{path}: image {image_id} ({name}) has an implausible translation {t.tolist()}")
+    return ColmapImage(image_id, name, camera_id, q, t)
 
 
 def read_cameras_binary(path: Path) -> dict[int, ColmapCamera]:
