@@ -310,8 +310,10 @@ def why_changed(stage: Stage, old: dict, settings: dict, rerun: set[str]) -> str
     """One line: which settings or upstream stages make a recorded stage stale."""
     if "fingerprint" not in old:
         return "recorded by an older nerfbake without stage fingerprints"
-    before, now = old.get("settings", {}), stage_settings(stage, settings)
-    diffs = [f"{k} {before.get(k)!r} -> {now[k]!r}" for k in now if before.get(k) != now[k]]
+    before = old.get("settings", {})
+    now = json.loads(json.dumps(stage_settings(stage, settings), default=str))  # as recorded: tuples become lists
+    short = lambda v: (r if len(r := repr(v)) <= 60 else r[:57] + "...")  # noqa: E731 -- whole configs are long
+    diffs = [f"{k} {short(before.get(k))} -> {short(now[k])}" for k in now if before.get(k) != now[k]]
     ups = [a for a in stage.after if a in rerun]
     parts = ([", ".join(diffs)] if diffs else []) + ([f"{', '.join(ups)} ran again"] if ups else [])
     return "; ".join(parts) or "its data files changed"
