@@ -134,6 +134,8 @@ def pose_problem(c2w: np.ndarray) -> str | None:
         return "not a finite 3x4 or 4x4 matrix"
     if np.abs(m[:3, 3]).max() > 1e7:
         return f"camera position {m[:3, 3].tolist()} is implausibly far from the origin"
+    if np.abs(m[:3, :3]).max() > 2.0:
+        return "its 3x3 rotation part has entries beyond +-2 (a rotation's are within +-1)"
     norms = np.linalg.norm(m[:3, :3], axis=0)
     if not np.all((norms > 0.5) & (norms < 2.0)) or abs(np.linalg.det(m[:3, :3] / norms)) < 0.9:
         return "its 3x3 rotation part is not a rotation (columns of length 1, orthogonal)"
