@@ -415,6 +415,10 @@ def cmd_smerf_render(args) -> int:
     return 0
 
 
+def _overwrite_flag(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing output (only once the new one is complete)")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="nerfbake", description=__doc__.splitlines()[0])
     parser.add_argument("--debug", action="store_true", help="show the full traceback of an error")
@@ -440,7 +444,7 @@ def build_parser() -> argparse.ArgumentParser:
     syn = sub.add_parser("synth", help="render a synthetic Blender-format dataset with Mitsuba 3")
     syn.add_argument("--scene", default="objects")
     syn.add_argument("--out")
-    syn.add_argument("--overwrite", action="store_true", help="replace an existing output (only once the new one is complete)")
+    _overwrite_flag(syn)
     syn.add_argument("--width", type=int, default=200)
     syn.add_argument("--height", type=int, default=200)
     syn.add_argument("--views", type=int, default=60, help="training views (val and test get a quarter each, at least 4)")
@@ -454,7 +458,7 @@ def build_parser() -> argparse.ArgumentParser:
     src.add_argument("--images", help="folder of photos (EXIF orientation honoured; unreadable files are skipped)")
     src.add_argument("--video", help="video file: the sharpest frame of each evenly spaced window is kept")
     pr.add_argument("--out", required=True, help="dataset folder to create (images/, sparse/0/, transforms.json)")
-    pr.add_argument("--overwrite", action="store_true", help="replace an existing output (only once the new one is complete)")
+    _overwrite_flag(pr)
     pr.add_argument("--fps", type=float, help="video: frames kept per second of video (default: --max-images in all)")
     pr.add_argument("--max-images", type=int, help="use at most N images, evenly spread (video default 100; folder: all)")
     pr.add_argument("--camera-model", default="SIMPLE_RADIAL",
@@ -495,7 +499,7 @@ def build_parser() -> argparse.ArgumentParser:
     tr.add_argument("--run", required=True)
     tr.add_argument("--pose-file", required=True)
     tr.add_argument("--out", required=True)
-    tr.add_argument("--overwrite", action="store_true", help="replace an existing output (only once the new one is complete)")
+    _overwrite_flag(tr)
     tr.set_defaults(func=cmd_teacher_render)
 
     octree = sub.add_parser("octree", help="PlenOctrees: build, fine-tune, compress, evaluate, render").add_subparsers(
@@ -503,7 +507,7 @@ def build_parser() -> argparse.ArgumentParser:
     ob = octree.add_parser("build", help="extract a tree from a trained teacher")
     ob.add_argument("--teacher", required=True, help="teacher run folder")
     ob.add_argument("--out", required=True, help="tree .npz to write")
-    ob.add_argument("--overwrite", action="store_true", help="replace an existing output (only once the new one is complete)")
+    _overwrite_flag(ob)
     ob.add_argument("--preset", choices=["cpu-small", "paper"], default="cpu-small")
     ob.add_argument("--grid", type=int, help="dense grid side (power of two; 512 in the paper)")
     ob.add_argument("--weight-thresh", type=float, help="keep voxels with this compositing weight on some training ray")
@@ -516,7 +520,7 @@ def build_parser() -> argparse.ArgumentParser:
     oo.add_argument("--tree", required=True)
     oo.add_argument("--data", required=True)
     oo.add_argument("--out", required=True)
-    oo.add_argument("--overwrite", action="store_true", help="replace an existing output (only once the new one is complete)")
+    _overwrite_flag(oo)
     oo.add_argument("--preset", choices=["cpu-small", "paper"], default="cpu-small")
     oo.add_argument("--epochs", type=int)
     oo.add_argument("--lr", type=float)
@@ -528,7 +532,7 @@ def build_parser() -> argparse.ArgumentParser:
     oc = octree.add_parser("compress", help="median-cut quantise SH into 2^bits codebooks + DEFLATE (web trees)")
     oc.add_argument("--tree", required=True)
     oc.add_argument("--out", required=True)
-    oc.add_argument("--overwrite", action="store_true", help="replace an existing output (only once the new one is complete)")
+    _overwrite_flag(oc)
     oc.add_argument("--bits", type=int, default=16, help="codebook size 2^bits (volrend needs 16)")
     oc.add_argument("--retain", type=int, default=0, help="keep the first R SH bases unquantised")
     oc.add_argument("--sigma-thresh", type=float, default=2.0, help="drop leaves with sigma at or below this")
@@ -558,7 +562,7 @@ def build_parser() -> argparse.ArgumentParser:
     orr.add_argument("--tree", required=True)
     orr.add_argument("--pose-file", required=True)
     orr.add_argument("--out", required=True)
-    orr.add_argument("--overwrite", action="store_true", help="replace an existing output (only once the new one is complete)")
+    _overwrite_flag(orr)
     orr.add_argument("--sh-range", help="SH components lo,hi (half-open) to sum, e.g. 0,1 for the diffuse part")
     orr.add_argument("--slice", help="slicing box xmin,ymin,zmin,xmax,ymax,zmax in tree coordinates")
     orr.add_argument("--step-size", type=float)
@@ -585,7 +589,7 @@ def build_parser() -> argparse.ArgumentParser:
     sr = smerf.add_parser("render", help="render test_frames.json views as the official viewer's shader does")
     sr.add_argument("--assets", required=True)
     sr.add_argument("--out", required=True)
-    sr.add_argument("--overwrite", action="store_true", help="replace an existing output (only once the new one is complete)")
+    _overwrite_flag(sr)
     sr.add_argument("--frames", help="a test_frames.json (default: the first submodel's)")
     sr.add_argument("--width", type=int, default=800)
     sr.add_argument("--height", type=int, default=500)
@@ -607,7 +611,7 @@ def build_parser() -> argparse.ArgumentParser:
     bk.add_argument("--student", required=True)
     bk.add_argument("--out", required=True)
     bk.add_argument("--ray-stride", type=int, default=2, help="use every n-th pixel row/column for the alive voxels")
-    bk.add_argument("--overwrite", action="store_true", help="replace an existing output (only once the new one is complete)")
+    _overwrite_flag(bk)
     bk.set_defaults(func=cmd_bake)
 
     vw = sub.add_parser("view", help="serve the web viewer for a baked SMERF folder or a PlenOctree .npz")

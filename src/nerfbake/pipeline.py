@@ -265,7 +265,6 @@ STAGES = [
     Stage("bake", "smerf", run_bake, parallel=True, keys=("bake_stride",), after=("distill",)),
     Stage("assets_eval", "smerf", eval_assets, keys=EVAL_KEYS, after=("bake",)),
 ]
-STAGE_NAMES = [s.name for s in STAGES]
 
 
 # --- running -----------------------------------------------------------------------------------------------------------
@@ -327,9 +326,9 @@ def run_pipeline(cfg: PipelineConfig, stop_after: str | None = None, log: Callab
     run = Path(cfg.out)
     dp = DataParallel()
     stages = [s for s in STAGES if s.method == "teacher" or s.method in cfg.methods]
-    if stop_after is not None and stop_after not in [s.name for s in stages]:
-        raise NerfbakeError(f"--stop-after {stop_after!r}: no such stage in this run; choose one of "
-                            f"{', '.join(s.name for s in stages)}")
+    names = [s.name for s in stages]
+    if stop_after is not None and stop_after not in names:
+        raise NerfbakeError(f"--stop-after {stop_after!r}: no such stage in this run; choose one of {', '.join(names)}")
     downscale, why = resolve_downscale(cfg)
     cfg = replace(cfg, downscale=downscale, downscale_why=why)
     log(f"pipeline: {why}")
@@ -337,7 +336,7 @@ def run_pipeline(cfg: PipelineConfig, stop_after: str | None = None, log: Callab
     prints = fingerprints(stages, settings)
     if dp.is_main:
         run.mkdir(parents=True, exist_ok=True)
-        write_json_atomic(run / "pipeline.json", {"config": settings, "stages": [s.name for s in stages]})
+        write_json_atomic(run / "pipeline.json", {"config": settings, "stages": names})
     t_start = time.perf_counter()
     said = set()  # methods whose skip reason was printed
     rerun: set[str] = set()  # stages run in this invocation (their dependants are stale)

@@ -76,19 +76,17 @@ def _read_json(path: Path) -> dict:
     return obj
 
 
-def read_params(sm_dir: Path) -> dict:
-    path = Path(sm_dir) / "scene_params.json"
-    if not path.is_file():
-        gz = path.with_name("scene_params.json.gz")
-        if gz.is_file():
-            return _read_json(gz)
-        raise AssetError(f"{path}: missing; point at an sm_XXX folder of a baked SMERF scene")
-    return _read_json(path)
-
-
 def params_path(sm_dir: Path) -> Path:
+    """``scene_params.json``, or its ``.gz`` when only that is there."""
     path = Path(sm_dir) / "scene_params.json"
     return path if path.is_file() else path.with_name("scene_params.json.gz")
+
+
+def read_params(sm_dir: Path) -> dict:
+    path = params_path(sm_dir)
+    if not path.is_file():
+        raise AssetError(f"{Path(sm_dir) / 'scene_params.json'}: missing; point at an sm_XXX folder of a baked SMERF scene")
+    return _read_json(path)
 
 
 def load_submodel(sm_dir: str | Path) -> Submodel:
