@@ -236,7 +236,8 @@ def cmd_octree_build(args) -> int:
 
     from nerfbake.octree.build import build_octree, build_preset
 
-    cfg = _override(build_preset(args.preset), args, ("grid", "weight_thresh", "samples_per_leaf", "ray_stride"))
+    cfg = _override(build_preset(args.preset), args, ("grid", "weight_thresh", "samples_per_leaf", "ray_stride",
+                                                       "env_map_height"))
     if args.no_autoscale:
         cfg = replace(cfg, autoscale=False)
     cfg.depth  # validates --grid before any work
@@ -244,7 +245,7 @@ def cmd_octree_build(args) -> int:
     summary = build_octree(args.teacher, args.out, cfg)
     _print_json(summary) if args.json else print(
         f"wrote {summary['tree']}: {summary['num_leaves']:,} leaves ({summary['kept_voxels']:,} kept voxels at "
-        f"{cfg.grid}^3), {summary['file_bytes'] / 1e6:.1f} MB in {summary['seconds']:.0f} s")
+        f"{cfg.grid}^3), {summary['file_bytes'] / 1e6:.1f} MB in {summary['seconds']:.0f} s; covers {summary['region']}")
     return 0
 
 
@@ -514,6 +515,8 @@ def build_parser() -> argparse.ArgumentParser:
     ob.add_argument("--samples-per-leaf", type=int, help="teacher samples averaged per leaf (256 paper, 8 fast)")
     ob.add_argument("--ray-stride", type=int, help="use every n-th pixel row/column of the training views for the mask")
     ob.add_argument("--no-autoscale", action="store_true", help="keep the teacher's box instead of fitting one")
+    ob.add_argument("--env-map-height", type=int, help="rows of the environment map baked for what lies beyond the box "
+                    "of an unbounded scene or a learned background (columns: twice that; 0: constant background)")
     ob.add_argument("--json", action="store_true")
     ob.set_defaults(func=cmd_octree_build)
     oo = octree.add_parser("optimize", help="fine-tune a tree on the training images (analytic gradients, SGD)")

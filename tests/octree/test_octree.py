@@ -35,6 +35,11 @@ def random_tree(data_dim=76, seed=0, cells=300, depth=3):
     return t
 
 
+def random_env(height=6, seed=5):
+    """A small environment map with every texel different (wrong texel or filtering shows in the comparisons)."""
+    return torch.rand(height, 2 * height, 3, generator=torch.Generator().manual_seed(seed))
+
+
 def random_rays(n, seed=0, radius=3.0):
     g = torch.Generator().manual_seed(seed)
     o = torch.randn(n, 3, generator=g)
@@ -148,9 +153,12 @@ def test_bad_files_give_clear_errors(fixtures, tmp_path):
     RenderOptions(), RenderOptions.training(), RenderOptions(basis_min=1, basis_max=9, background=(0.2, 0.5, 0.0)),
     RenderOptions(bbox_min=(0.3, 0.0, 0.2), bbox_max=(0.8, 0.7, 1.0), step_size=1e-3),
 ], ids=["volrend-defaults", "training", "sh-range", "slicing"])
+@pytest.mark.parametrize("env", [False, True], ids=["background", "env-map"])
 @devices
-def test_kernel_matches_torch_reference(opts, device):
+def test_kernel_matches_torch_reference(opts, env, device):
     tree = random_tree(76)  # SH25: every basis function the kernel has
+    if env:
+        tree.env_map = random_env()
     o, d = random_rays(3000)
     a = {k: v.cpu() for k, v in render_rays(tree.to(device), o.to(device), d.to(device), opts).items()}
     b = render_reference(tree, o, d, opts)
@@ -160,9 +168,11 @@ def test_kernel_matches_torch_reference(opts, device):
     assert 0.05 < float(b["alpha"].mean()) < 0.95  # the rays see the tree, and not all of it is opaque
 
 
+@pytest.mark.parametrize("env", [False, True], ids=["background", "env-map"])
 @devices
-def test_backward_matches_autograd_and_finite_differences(device):
+def test_backward_matches_autograd_and_finite_differences(env, device):
     tree = random_tree(28, seed=1)
+    tree.env_map = random_env() if env else None
     o, d = random_rays(2000, seed=1)
     opts = RenderOptions.training(background=(0.3, 0.6, 0.9))
     g = torch.randn(o.shape[0], 3, generator=torch.Generator().manual_seed(2))
@@ -170,13 +180,13 @@ def test_backward_matches_autograd_and_finite_differences(device):
     rgb = render_rays(*on, opts)["rgb"]
     kernel = render_backward(*on, opts, rgb, g.to(device)).reshape(-1, 28).cpu()
     data64 = tree.data.double().requires_grad_()
-    t64 = Octree(tree.child, data64, tree.offset, tree.invradius, tree.depth_limit)
+    t64 = Octree(tree.child, data64, tree.offset, tree.invradius, tree.depth_limit, tree.env_map)
     (render_reference(t64, o.double(), d.double(), opts)["rgb"] * g.double()).sum().backward()
     auto = data64.grad.reshape(-1, 28)
     assert (kernel.double() - auto).abs().max() < 1e-4 * auto.abs().max()
 
     def loss(data):
-        return float((render_reference(Octree(tree.child, data, tree.offset, tree.invradius, tree.depth_limit),
+        return float((render_reference(Octree(tree.child, data, tree.offset, tree.invradius, tree.depth_limit, tree.env_map),
                                        o.double(), d.double(), opts)["rgb"] * g.double()).sum())
 
     for col in (0, 5, 27):  # an SH coefficient of R, of G (degree 1), and sigma
@@ -187,6 +197,40 @@ def test_backward_matches_autograd_and_finite_differences(device):
         lo.view(-1, 28)[slot, col] -= eps
         fd = (loss(hi) - loss(lo)) / (2 * eps)
         assert kernel[slot, col].item() == pytest.approx(fd, rel=1e-3)
+
+
+def test_environment_map_lookup_follows_its_convention():
+    """Texel centres return their texel; between columns the lookup is bilinear and wraps around in longitude,
+    as a WebGL texture with LINEAR filtering and REPEAT in s; directions map to rows from +z down to -z."""
+    from nerfbake.render.envmap import equirect_coords, equirect_directions, sample_equirect
+
+    env = random_env(8)
+    dirs = equirect_directions(8, 16)
+    assert torch.allclose(dirs.norm(dim=-1), torch.ones(8, 16))
+    assert torch.allclose(sample_equirect(env, dirs.reshape(-1, 3)), env.reshape(-1, 3), atol=1e-5)
+    assert float(dirs[0, 0, 2]) > 0.98 and float(dirs[-1, 0, 2]) < -0.98
+    # half way between the last column and the first (longitude +-pi): their mean
+    th = math.pi * 2.5 / 8  # row 2's centre
+    seam = torch.tensor([[-math.sin(th), 0.0, math.cos(th)]])
+    assert torch.allclose(sample_equirect(env, seam)[0], 0.5 * (env[2, 0] + env[2, -1]), atol=1e-5)
+    s, t = equirect_coords(torch.tensor([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0]]))
+    assert s.tolist() == pytest.approx([0.5, 0.5]) and t.tolist() == pytest.approx([0.5, 1.0])
+
+
+def test_environment_map_survives_save_compress_and_load(tmp_path):
+    tree = random_tree(28, seed=3, cells=2000, depth=4)
+    tree.env_map = random_env(4)
+    save_tree(tree, tmp_path / "raw.npz")
+    compress_tree(tmp_path / "raw.npz", tmp_path / "c.npz", band_bits=(16,))
+    for name in ("raw.npz", "c.npz"):
+        z = np.load(tmp_path / name)
+        assert z["env_map"].dtype == np.uint8 and z["env_map"].shape == (4, 8, 3)
+        assert volrend_problems(tmp_path / name) == []  # volrend and svox read the keys they know and ignore it
+        back = load_tree(tmp_path / name)
+        assert (back.env_map - tree.env_map).abs().max() <= 0.5 / 255 + 1e-6
+    np.savez(tmp_path / "bad.npz", **{**dict(np.load(tmp_path / "raw.npz")), "env_map": np.zeros((4, 8), np.uint8)})
+    with pytest.raises(OctreeFileError, match="bad.npz.*env_map"):
+        load_tree(tmp_path / "bad.npz")
 
 
 def test_tree_from_cells_has_exactly_those_leaves():
@@ -335,9 +379,25 @@ def test_an_unbounded_360_teacher_builds_a_tree_over_its_core_and_a_forward_faci
     fox_cfg = replace(cfg, downscale=16)
     fox_run = train_teacher(fox, tmp_path / "fox", fox_cfg)
     summary = build_octree(fox_run, tmp_path / "fox.npz", BuildConfig(grid=32, samples_per_leaf=2, autoscale_grid=16,
-                                                                      weight_thresh=0.01))
-    assert "core" in summary["region"] and summary["num_leaves"] > 0
+                                                                      weight_thresh=0.01, env_map_height=6))
+    assert "core" in summary["region"] and "environment map" in summary["region"] and summary["num_leaves"] > 0
     assert min(summary["box_min"]) >= -1 and max(summary["box_max"]) <= 1
+    # beyond the box, the environment map: each texel is the teacher's colour along its direction from the cameras'
+    # mean position, from where that ray leaves the box on
+    from nerfbake.data.formats import load_dataset
+    from nerfbake.render.envmap import equirect_directions
+    from nerfbake.teacher.sampling import ray_box
+    from nerfbake.teacher.train import load_teacher
+
+    assert summary["env_map"] == [6, 12]
+    tree = load_tree(tmp_path / "fox.npz")
+    teacher = load_teacher(fox_run)[0]
+    centre = torch.tensor(np.mean([c.c2w[:3, 3] for c in load_dataset(fox, downscale=16).cameras("train")], 0)).float()
+    d = equirect_directions(6, 12)[[1, 4], [3, 10]]
+    o = centre.expand_as(d)
+    _, t_far = ray_box(o, d, torch.tensor(summary["box_min"]).float(), torch.tensor(summary["box_max"]).float())
+    expect = teacher.render_rays(o + t_far[:, None] * d, d, torch.ones(3))["rgb"].detach()
+    assert (tree.env_map[[1, 4], [3, 10]] - expect).abs().max() <= 0.5 / 255 + 1e-4
     # fox has train and test only: fine-tuning picks its best epoch on training views, never on the test views
     res = optimize_tree(tmp_path / "fox.npz", fox, tmp_path / "fox_opt.npz", OptimizeConfig(epochs=1, downscale=16, val_views=2))
     assert res["val_split"] == "train" and (tmp_path / "fox_opt.npz").is_file()

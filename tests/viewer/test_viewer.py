@@ -37,19 +37,27 @@ def test_smerf_view_matches_the_python_renderer(which, tiny_assets_dir):
     assert psnr(img, ref) >= 35
 
 
-@pytest.mark.parametrize("which,query", [("built", ""), ("built", "maxTextureSize=64"), ("svox", ""),
+@pytest.mark.parametrize("which,query", [("built", ""), ("built", "maxTextureSize=64"), ("env-map", ""), ("svox", ""),
                                          ("svox-deflate", ""), ("compressed", "")])
-def test_octree_view_matches_the_python_renderer(which, query, tiny_tree, tiny_scene):
+def test_octree_view_matches_the_python_renderer(which, query, tiny_tree, tiny_scene, tmp_path):
     from nerfbake.data.cameras import Camera
     from nerfbake.data.formats import load_dataset
     from nerfbake.octree.io import load_tree
     from nerfbake.octree.render import RenderOptions, render_camera
     from nerfbake.viewer.browser import ViewerPage, octree_camera
 
-    if which == "built":
+    if which in ("built", "env-map"):
         path = tiny_tree
         cam = load_dataset(tiny_scene).frames[load_dataset(tiny_scene).split("test")[0]].camera
-    else:
+    if which == "env-map":  # what lies beyond the box drawn from an environment map (render/envmap.py)
+        import torch
+
+        from nerfbake.octree.io import save_tree
+
+        tree = load_tree(tiny_tree)
+        tree.env_map = torch.rand(8, 16, 3, generator=torch.Generator().manual_seed(0))
+        path = save_tree(tree, tmp_path / "env.npz")
+    elif which != "built":
         name = {"svox": "good_svox_raw.npz", "svox-deflate": "good_svox_deflate.npz", "compressed": "good_compressed_numpy.npz"}
         path = shared_data("octree_fixtures") / name[which]
         tree = load_tree(path)
@@ -69,8 +77,12 @@ def test_octree_view_matches_the_python_renderer(which, query, tiny_tree, tiny_s
         assert page.errors == []
     if query:
         assert state["tiles"]["data"]["layers"] > 1  # one texture would exceed the limit: tiled over layers
+    assert state["envMap"] == ([8, 16] if which == "env-map" else None)
     assert ref.std() > 5
     assert psnr(img, ref) >= 35
+    if which == "env-map":  # the view does show the map
+        plain = np.round(np.clip(render_camera(load_tree(tiny_tree), cam, RenderOptions())["rgb"], 0, 1) * 255)
+        assert np.mean(np.abs(plain - ref).max(-1) > 20) > 0.2
 
 
 # --- streaming ----------------------------------------------------------------------------------------------------------

@@ -14,7 +14,11 @@ It assumes no early stop (``stop_thresh`` 0), as svox's training renderer does.
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import torch
+
+from nerfbake.render.envmap import sample_equirect
 
 from nerfbake.kernels import cpu_threads, device_of, ensure_loaded, launch_chunks, parallel_map, warp
 
@@ -217,7 +221,17 @@ def _common(tree, origins, dirs, opts):
 
 
 def render_forward(tree, origins: torch.Tensor, dirs: torch.Tensor, opts) -> dict[str, torch.Tensor]:
-    """rgb (R, 3), depth (R,) along the world ray, alpha (R,) for unit ``dirs`` in world space."""
+    """rgb (R, 3), depth (R,) along the world ray, alpha (R,) for unit ``dirs`` in world space. A tree with an
+    environment map shows it where ``opts.background`` would be: the kernel composites on black and the map is
+    added with the remaining transmittance 1 - alpha (zero for rays that stopped early). The backward kernel needs
+    nothing more: it reads the background through the forward's ``rgb``."""
+    out = _render_forward(tree, origins, dirs, opts if tree.env_map is None else replace(opts, background=(0.0, 0.0, 0.0)))
+    if tree.env_map is not None and origins.shape[0]:
+        out["rgb"] = out["rgb"] + (1.0 - out["alpha"])[:, None] * sample_equirect(tree.env_map, dirs)
+    return out
+
+
+def _render_forward(tree, origins: torch.Tensor, dirs: torch.Tensor, opts) -> dict[str, torch.Tensor]:
     n = origins.shape[0]
     dev = device_of(origins)
     rgb = torch.empty(n, 3, device=origins.device)

@@ -22,6 +22,7 @@ import torch
 from nerfbake.data.formats import load_dataset
 from nerfbake.data.rays import camera_rays
 from nerfbake.kernels.grid_weights import BLOCK, mark_visible_voxels
+from nerfbake.octree.environment import bake_environment, needs_environment
 from nerfbake.octree.io import save_tree
 from nerfbake.octree.tree import Octree, tree_from_cells
 from nerfbake.progress import progress_bar
@@ -40,6 +41,9 @@ class BuildConfig:
     ray_stride: int = 1  # use every n-th pixel row and column of the training views for the weight mask
     seed: int = 0
     chunk: int = 1 << 18  # points per teacher query
+    # Rows of the environment map (2x as many columns) baked for teachers that see past their box (unbounded
+    # scenes, learned backgrounds: octree/environment.py); 0 draws the constant background there instead.
+    env_map_height: int = 256
 
     @property
     def depth(self) -> int:
@@ -200,8 +204,8 @@ def build_octree(teacher_run: str | Path, out: str | Path, cfg: BuildConfig) -> 
             raise ValueError(f"{teacher_run}: the teacher is a forward-facing capture; a PlenOctree covers one bounded box "
                              "and this scene's content lies in front of its cameras out to infinity: use SMERF for it")
         # An unbounded 360 scene: the tree covers the uncontracted core (the cube the cameras stand in, where the
-        # teacher spends its resolution); what lies beyond is drawn as the renderer's background colour.
-        region = "the unbounded scene's uncontracted core (cameras inside it); beyond it, the background colour"
+        # teacher spends its resolution); what lies beyond is drawn from an environment map (see below).
+        region = "the unbounded scene's uncontracted core (cameras inside it)"
     depth = cfg.depth
     lo = torch.tensor(meta["box"]["box_min"], dtype=torch.float64)
     hi = torch.tensor(meta["box"]["box_max"], dtype=torch.float64)
@@ -218,13 +222,20 @@ def build_octree(teacher_run: str | Path, out: str | Path, cfg: BuildConfig) -> 
     fill_leaves(tree, teacher, cfg, cells)
     dp = DataParallel()
     path = Path(out)
+    if cfg.env_map_height and needs_environment(teacher) and dp.is_main:
+        bg = tuple(meta.get("dataset", {}).get("background") or (1.0, 1.0, 1.0))
+        tree.env_map = bake_environment(teacher, lo.float(), hi.float(), cameras, cfg.env_map_height, bg)
+        region += f"; beyond it, a {cfg.env_map_height}x{2 * cfg.env_map_height} environment map baked from the teacher"
+    elif meta["box"].get("contracted"):
+        region += "; beyond it, the background colour"
     if dp.is_main:
         save_tree(tree, path)
     dp.barrier()
     summary = {
         "tree": str(path), "teacher": str(teacher_run), "num_leaves": tree.num_leaves, "num_nodes": tree.num_nodes,
         "kept_voxels": int(cells.shape[0]), "depth_limit": depth, "data_format": tree.data_format,
-        "box_min": lo.tolist(), "box_max": hi.tolist(), "region": region, "file_bytes": path.stat().st_size,
+        "box_min": lo.tolist(), "box_max": hi.tolist(), "region": region,
+        "env_map": None if tree.env_map is None else list(tree.env_map.shape[:2]), "file_bytes": path.stat().st_size,
         "seconds": time.time() - start, "config": asdict(cfg), "data": meta["data"], "downscale": tcfg.downscale,
     }
     return summary

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nerfbake.octree.io import load_tree, write_npz
+from nerfbake.octree.io import env_map_arrays, load_tree, write_npz
 from nerfbake.progress import progress_bar
 
 
@@ -112,6 +112,7 @@ def compress_tree(tree_path: str | Path, out: str | Path, bits: int = 16, retain
         "quant_colors": quant_colors,
         "quant_map": quant_map,
         "sigma": np.where(alive, sigma, 0).astype(np.float16),
+        **env_map_arrays(tree),
     }
     if retain:
         kept = np.where(alive[..., None, None], rgb[..., :retain], 0)  # (n,2,2,2,3,R)

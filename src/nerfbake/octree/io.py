@@ -5,6 +5,9 @@ Raw (svox ``N3Tree.save``): int64 ``data_dim``/``n_internal``/``n_free``/``depth
 ``data`` and a unicode ``data_format``. Compressed (the authors' compression script): ``quant_colors`` float16
 (B-R, K, 3), ``quant_map`` uint16 (B-R, n, 2, 2, 2), ``sigma`` float16, optional ``data_retained`` float16
 (R, n, 2, 2, 2, 3), without ``data``. See ``shared/reference/plenoctree_anchors.md`` section 1.
+
+nerfbake adds one optional key to either layout: ``env_map``, uint8 (H, W, 3), the colour beyond the tree's box by
+direction (``render/envmap.py``). svox and volrend load the arrays they know by name and ignore it.
 """
 from __future__ import annotations
 
@@ -30,9 +33,16 @@ def _fail(path, problem: str, fix: str = "write it with `nerfbake octree build` 
     return OctreeFileError(f"{path}: {problem}; {fix}")
 
 
+def env_map_arrays(tree: Octree) -> dict[str, np.ndarray]:
+    """``{"env_map": uint8 (H, W, 3)}`` for a tree with an environment map, else nothing."""
+    if tree.env_map is None:
+        return {}
+    return {"env_map": (tree.env_map.detach().cpu().clamp(0, 1) * 255).round().to(torch.uint8).numpy()}
+
+
 def tree_arrays(tree: Octree) -> dict[str, np.ndarray]:
-    """The svox key set for ``tree`` (what :func:`save_tree` writes)."""
-    return {
+    """The svox key set for ``tree`` (what :func:`save_tree` writes), plus its environment map if it has one."""
+    return {**env_map_arrays(tree), 
         "data_dim": np.array(tree.data_dim, dtype=np.int64),
         "child": tree.child.cpu().numpy().astype(np.int32),
         "parent_depth": tree.parent_depth(),
@@ -132,6 +142,11 @@ def _load_tree(path: Path, device) -> Octree:
         offset=torch.from_numpy(offset.copy()), invradius=torch.from_numpy(inv.copy()),
         depth_limit=int(z["depth_limit"]) if "depth_limit" in z else -1,  # -1: taken from the tree below
     )
+    if "env_map" in z:
+        env = _want(path, z, "env_map", "u", 3)
+        if env.dtype != np.uint8 or env.shape[2] != 3 or min(env.shape[:2]) < 1:
+            raise _fail(path, f"'env_map' is {env.dtype} {env.shape}; nerfbake writes uint8 (H, W, 3)")
+        tree.env_map = torch.from_numpy(env.astype(np.float32) / 255.0)
     _check_structure(path, tree)
     return tree.to(device)
 

@@ -12,6 +12,7 @@ from nerfbake.data.cameras import Camera
 from nerfbake.data.rays import camera_rays
 from nerfbake.octree.tree import Octree
 from nerfbake.render.packed import packed_composite, packed_weights
+from nerfbake.render.envmap import sample_equirect
 from nerfbake.render.sh import sh_basis
 
 
@@ -133,7 +134,8 @@ def render_reference(tree: Octree, origins: torch.Tensor, dirs: torch.Tensor, op
     out = packed_composite(w, color, t0, t0 + s["delta"].to(flat), s["ray"], n)
     rgb, acc, depth = out["rgb"], out["acc"], out["depth"]
     T = 1.0 - acc
-    bg = torch.tensor(opts.background, dtype=flat.dtype)
+    bg = torch.tensor(opts.background, dtype=flat.dtype) if tree.env_map is None else \
+        sample_equirect(tree.env_map, dirs).to(flat.dtype)
     stopped = s["stopped"][:, None]
     rgb = torch.where(stopped, rgb / (1.0 - T[:, None]).clamp_min(1e-12), rgb + T[:, None] * bg)
     alpha = torch.where(s["stopped"], torch.ones_like(acc), acc)

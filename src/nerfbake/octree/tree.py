@@ -37,6 +37,9 @@ class Octree:
     offset: torch.Tensor  # float32 (3,)
     invradius: torch.Tensor  # float32 (3,)
     depth_limit: int
+    # Colour beyond the tree's box by direction, (H, W, 3) in [0, 1] (render/envmap.py's convention), or None: the
+    # renderer's constant background. Baked from the teacher for scenes whose photos show more than the box.
+    env_map: torch.Tensor | None = None
 
     @property
     def num_nodes(self) -> int:
@@ -67,7 +70,9 @@ class Octree:
         return self.data.device
 
     def to(self, device) -> "Octree":
-        return Octree(self.child.to(device), self.data.to(device), self.offset.to(device), self.invradius.to(device), self.depth_limit)
+        env = None if self.env_map is None else self.env_map.to(device)
+        return Octree(self.child.to(device), self.data.to(device), self.offset.to(device), self.invradius.to(device),
+                      self.depth_limit, env)
 
     def world_to_tree(self, p: torch.Tensor) -> torch.Tensor:
         return self.offset.to(p) + self.invradius.to(p) * p

@@ -86,6 +86,20 @@ export function byteArrayTexture(gl, width, height, layers, channels, data, line
   return texture2DArray(gl, width, height, layers, internal, format, 'UNSIGNED_BYTE', data, linear);
 }
 
+// An equirectangular environment map (src/nerfbake/render/envmap.py): RGB bytes, bilinear, wrapping around in
+// longitude (s) and clamped at the poles (t), as the Python renderers sample it.
+export function environmentTexture(gl, width, height, data) {
+  const tex = gl.createTexture();
+  gl.bindTexture(gl.TEXTURE_2D, tex);
+  gl.texStorage2D(gl.TEXTURE_2D, 1, gl.RGB8, width, height);
+  gl.texSubImage2D(gl.TEXTURE_2D, 0, 0, 0, width, height, gl.RGB, gl.UNSIGNED_BYTE, data);
+  gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.LINEAR);
+  gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.LINEAR);
+  gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_S, gl.REPEAT);
+  gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE);
+  return tex;
+}
+
 function setFilter(gl, target, linear) {
   const f = linear ? gl.LINEAR : gl.NEAREST;
   gl.texParameteri(target, gl.TEXTURE_MIN_FILTER, f);

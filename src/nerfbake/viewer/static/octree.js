@@ -1,7 +1,8 @@
 // PlenOctrees (raw and compressed .npz, ours and the authors'): parse the file in the browser, pack the tree into
 // 2D-array textures within the device's limits (tiled over layers when one texture would be too large), and
 // trace each pixel as the Python/Warp renderer does (src/nerfbake/kernels/octree.py), SH up to degree 4.
-import {ViewerError, bindTextures, mat3ColumnMajor, createProgram, drawFullscreen, fetchBytes, texture2DArray} from './gl.js';
+import {ViewerError, bindTextures, mat3ColumnMajor, createProgram, drawFullscreen, environmentTexture, fetchBytes,
+        texture2DArray} from './gl.js';
 import {asFloat, readNpz} from './npz.js';
 
 export class OctreeScene {
@@ -32,7 +33,10 @@ export class OctreeScene {
     const packed = new Float32Array(dl.w * dl.h * dl.layers * 4);
     for (let s = 0; s < slots; s++) packed.set(tree.data.subarray(s * tree.dim, (s + 1) * tree.dim), s * this.tps * 4);
     this.dataTex = texture2DArray(gl, dl.w, dl.h, dl.layers, 'RGBA32F', 'RGBA', 'FLOAT', packed, false);
-    this.bytes = cl.w * cl.h * cl.layers * 4 + packed.byteLength;
+    // Beyond the box: the tree's environment map, or a 1x1 stand-in while the constant background is drawn.
+    const env = tree.env || {width: 1, height: 1, data: new Uint8Array(3)};
+    this.envTex = environmentTexture(gl, env.width, env.height, env.data);
+    this.bytes = cl.w * cl.h * cl.layers * 4 + packed.byteLength + env.width * env.height * 4;
     this.program = createProgram(gl, octreeFragment(this.tps));
   }
 
@@ -46,7 +50,10 @@ export class OctreeScene {
 
   update() {}
   async ready() {}
-  state() { return {numLeaves: this.tree.numLeaves, nb: this.tree.nb, tiles: {child: this.childLayout, data: this.dataLayout}}; }
+  state() {
+    const env = this.tree.env ? [this.tree.env.height, this.tree.env.width] : null;
+    return {numLeaves: this.tree.numLeaves, nb: this.tree.nb, envMap: env, tiles: {child: this.childLayout, data: this.dataLayout}};
+  }
   gpuBytes() { return this.bytes; }
 
   // camera: {c2w rotation rows (3x3) as `rotation`, `position`, fx, fy, cx, cy} in pixels of (width, height)
@@ -65,6 +72,7 @@ export class OctreeScene {
     gl.uniform3fv(u.uBBoxMin, o.bboxMin);
     gl.uniform3fv(u.uBBoxMax, o.bboxMax);
     gl.uniform3fv(u.uBackground, o.background);
+    gl.uniform1i(u.uHasEnv, this.tree.env ? 1 : 0);
     gl.uniform1f(u.uStepSize, o.stepSize);
     gl.uniform1f(u.uSigmaThresh, o.sigmaThresh);
     gl.uniform1f(u.uStopThresh, o.stopThresh);
@@ -74,7 +82,8 @@ export class OctreeScene {
     gl.uniform1i(u.uDepthMode, o.depth ? 1 : 0);
     gl.uniform2i(u.uChildTile, this.childLayout.w, this.childLayout.h);
     gl.uniform2i(u.uDataTile, this.dataLayout.w, this.dataLayout.h);
-    bindTextures(gl, this.program, [['tChild', gl.TEXTURE_2D_ARRAY, this.childTex], ['tData', gl.TEXTURE_2D_ARRAY, this.dataTex]]);
+    bindTextures(gl, this.program, [['tChild', gl.TEXTURE_2D_ARRAY, this.childTex], ['tData', gl.TEXTURE_2D_ARRAY, this.dataTex],
+                                     ['tEnv', gl.TEXTURE_2D, this.envTex]]);
     drawFullscreen(gl, target, width, height);
     return true;
   }
@@ -131,9 +140,17 @@ function decodeTree(z, name) {
     data = asFloat(d);
     if (data.length !== slots * dim) throw new ViewerError(`${name}: 'data' size does not match 'child' and 'data_dim'`);
   }
+  let env = null;
+  if (z.env_map) {
+    const e = z.env_map;
+    if (e.data.BYTES_PER_ELEMENT !== 1 || e.shape.length !== 3 || e.shape[2] !== 3) {
+      throw new ViewerError(`${name}: 'env_map' is ${e.descr} (${e.shape}); nerfbake writes uint8 (H, W, 3)`);
+    }
+    env = {height: e.shape[0], width: e.shape[1], data: e.data};
+  }
   let leaves = 0;
   for (let i = 0; i < child.data.length; i++) if (child.data[i] === 0) leaves++;
-  return {child: child.data, data, dim, nb, offset, invradius, numNodes: n, numLeaves: leaves, format: fmt};
+  return {child: child.data, data, dim, nb, offset, invradius, env, numNodes: n, numLeaves: leaves, format: fmt};
 }
 
 function octreeFragment(tps) {
@@ -154,6 +171,8 @@ uniform vec3 uInvRadius;
 uniform vec3 uBBoxMin;
 uniform vec3 uBBoxMax;
 uniform vec3 uBackground;
+uniform int uHasEnv;        // 1: colour beyond the box from tEnv (equirectangular, render/envmap.py), else uBackground
+uniform sampler2D tEnv;
 uniform float uStepSize;
 uniform float uSigmaThresh;
 uniform float uStopThresh;
@@ -198,6 +217,13 @@ void shBasis(vec3 d, out float b[25]) {
   b[22] = 0.47308734787878004 * (xx - yy) * (7.0 * zz - 1.0);
   b[23] = -1.7701307697799304 * xz * (xx - 3.0 * yy);
   b[24] = 0.6258357354491761 * (xx * (xx - 3.0 * yy) - yy * (3.0 * xx - yy));
+}
+
+vec3 background(vec3 d) {
+  if (uHasEnv == 0) return uBackground;
+  float s = atan(d.y, d.x) * 0.15915494309189535 + 0.5;
+  float t = acos(clamp(d.z, -1.0, 1.0)) * 0.3183098861837907;
+  return textureLod(tEnv, vec2(s, t), 0.0).rgb;
 }
 
 void main() {
@@ -276,7 +302,7 @@ void main() {
     }
     t += delta + uStepSize;
   }
-  vec3 rgb = stopped ? acc / (1.0 - T) : acc + T * uBackground;
+  vec3 rgb = stopped ? acc / (1.0 - T) : acc + T * background(d);
   if (uDepthMode == 1) rgb = vec3(clamp(dep * 0.3, 0.0, 1.0));
   fragColor = vec4(clamp(rgb, 0.0, 1.0), 1.0);
 }
