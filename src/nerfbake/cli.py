@@ -302,6 +302,7 @@ def cmd_octree_info(args) -> int:
         "leaves_per_depth": {int(d): int((leaves["depth"] == d).sum()) for d in leaves["depth"].unique()},
         "nonzero_sigma_leaves": int((tree.data.reshape(-1, tree.data_dim)[leaves["index"], -1] > 0).sum()),
         "box_min": lo.tolist(), "box_max": hi.tolist(), "file_bytes": Path(args.tree).stat().st_size,
+        "env_map": None if tree.env_map is None else list(tree.env_map.shape[:2]),
         "volrend_problems": volrend_problems(args.tree),
     }
     if args.json:

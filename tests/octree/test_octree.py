@@ -354,7 +354,7 @@ def test_octree_eval_and_info_print_the_contract_keys(fixtures, tiny_scene, tmp_
     tree.write_bytes((fixtures / "good_svox_raw.npz").read_bytes())
     assert main(["octree", "info", str(tree), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
-    assert info["num_leaves"] == 3256 and info["volrend_problems"] == []
+    assert info["num_leaves"] == 3256 and info["volrend_problems"] == [] and info["env_map"] is None
     assert main(["octree", "eval", "--tree", str(tree), "--data", str(tiny_scene), "--max-views", "2",
                  "--repeats", "1", "--json"]) == 0
     res = json.loads(capsys.readouterr().out)
