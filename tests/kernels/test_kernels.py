@@ -1,4 +1,5 @@
 """Warp kernels against slow torch references on the same inputs."""
+import pytest
 import torch
 
 from nerfbake.kernels.hashgrid import hash_encode, hash_encode_reference
@@ -8,16 +9,18 @@ from nerfbake.render.quadrature import composite, weights_from_density
 from tests.helpers import devices
 
 
-def grid_setup(levels=6, log2_table=10):
+def grid_setup(levels=6, log2_table=10, rows=None):
+    rows = rows or 2**log2_table
     res = torch.tensor([4, 7, 11, 19, 33, 60][:levels], dtype=torch.int32)
-    dense = ((res.long() + 1) ** 3 <= 2**log2_table).int()
-    table = torch.randn(levels, 2**log2_table, 2, generator=torch.Generator().manual_seed(0))
+    dense = ((res.long() + 1) ** 3 <= rows).int()
+    table = torch.randn(levels, rows, 2, generator=torch.Generator().manual_seed(0))
     return res, dense, table
 
 
+@pytest.mark.parametrize("rows", [1024, 1000], ids=["2^k-rows", "other-rows"])  # masked or modulo hash
 @devices
-def test_hash_encoding_matches_reference_and_has_both_kinds_of_level(device):
-    res, dense, table = grid_setup()
+def test_hash_encoding_matches_reference_and_has_both_kinds_of_level(rows, device):
+    res, dense, table = grid_setup(rows=rows)
     assert dense.any() and not dense.all()
     x = torch.rand(3000, 3, generator=torch.Generator().manual_seed(1))
     x[:10] = torch.tensor([0.0, 1.0, 0.999999])  # the box's faces

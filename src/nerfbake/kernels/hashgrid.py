@@ -2,8 +2,11 @@
 
 Shapes: ``x`` (N, 3) in [0, 1]^3; ``table`` (L, T, F) features; ``resolution`` (L,) int grid size per level;
 ``dense`` (L,) int, 1 where (res+1)^3 <= T so the level is indexed densely instead of hashed. Output
-(N, L*F) with F = 2 (features are ``vec2``, as in instant-ngp's default). One thread per (point, level); the backward scatters into the table with atomic adds, and
-CPU launches deal the levels out over threads, so threads never write the same table rows.
+(N, L*F) with F = 2 (features are ``vec2``, as in instant-ngp's default). One thread per (block of points, level):
+a block of one point on a GPU, of ``CPU_BLOCK`` points on the CPU, where Warp calls the kernel once per thread
+index and that call's overhead was half the cost of a dense level. The backward scatters into the table with
+atomic adds, and CPU launches deal the levels out over threads, so threads never write the same table rows.
+Tables of 2^k rows (every ``HashGrid``) reduce the hash with a mask instead of an integer division.
 """
 from __future__ import annotations
 
@@ -30,14 +33,26 @@ def corner_weight(c: int, frac: wp.vec3) -> float:
 
 @wp.func
 def corner_index(base: wp.vec3i, c: int, res: int, dense: int, size: int) -> int:
-    """Table row of corner c of the cell at ``base``: dense indexing where the level fits, else the spatial hash."""
+    """Table row of corner c of the cell at ``base``: dense indexing where the level fits, else the spatial hash
+    (``size`` rows; a negative ``size`` is -(rows - 1) for 2^k rows, reduced with a mask)."""
     cx = base[0] + (c & 1)
     cy = base[1] + ((c >> 1) & 1)
     cz = base[2] + ((c >> 2) & 1)
     if dense == 1:
         return cx + (res + 1) * (cy + (res + 1) * cz)
     h = wp.uint32(cx) ^ (wp.uint32(cy) * wp.uint32(2654435761)) ^ (wp.uint32(cz) * wp.uint32(805459861))
+    if size < 0:
+        return int(h & wp.uint32(-size))
     return int(h % wp.uint32(size))
+
+
+@wp.func
+def cell_of(x: wp.array2d(dtype=wp.float32), n: int, res: int, fres: float):
+    """The cell holding point n at resolution ``res`` and the point's fractional position inside it."""
+    p = wp.vec3(wp.clamp(x[n, 0], 0.0, 1.0), wp.clamp(x[n, 1], 0.0, 1.0), wp.clamp(x[n, 2], 0.0, 1.0)) * fres
+    base = wp.vec3i(wp.min(int(wp.floor(p[0])), res - 1), wp.min(int(wp.floor(p[1])), res - 1),
+                    wp.min(int(wp.floor(p[2])), res - 1))
+    return base, p - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
 
 
 @wp.kernel
@@ -48,22 +63,21 @@ def hash_forward(
     dense: wp.array(dtype=wp.int32),
     level0: int,
     level_stride: int,
+    size: int,
+    block: int,
     out: wp.array2d(dtype=wp.vec2),
 ):
-    j, n = wp.tid()
+    j, b = wp.tid()
     level = level0 + j * level_stride
     res = resolution[level]
-    size = table.shape[1]
-    p = wp.vec3(wp.clamp(x[n, 0], 0.0, 1.0), wp.clamp(x[n, 1], 0.0, 1.0), wp.clamp(x[n, 2], 0.0, 1.0)) * float(res)
-    base = wp.vec3i(wp.min(int(wp.floor(p[0])), res - 1), wp.min(int(wp.floor(p[1])), res - 1),
-                    wp.min(int(wp.floor(p[2])), res - 1))
-    frac = p - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
-    acc = wp.vec2(0.0, 0.0)
-    for c in range(8):
-        w = corner_weight(c, frac)
-        idx = corner_index(base, c, res, dense[level], size)
-        acc = acc + w * table[level, idx]
-    out[n, level] = acc
+    is_dense = dense[level]
+    fres = float(res)
+    for n in range(b * block, wp.min((b + 1) * block, x.shape[0])):
+        base, frac = cell_of(x, n, res, fres)
+        acc = wp.vec2(0.0, 0.0)
+        for c in range(8):
+            acc = acc + corner_weight(c, frac) * table[level, corner_index(base, c, res, is_dense, size)]
+        out[n, level] = acc
 
 
 @wp.kernel
@@ -74,21 +88,20 @@ def hash_backward(
     dense: wp.array(dtype=wp.int32),
     level0: int,
     level_stride: int,
+    size: int,
+    block: int,
     grad_table: wp.array2d(dtype=wp.vec2),
 ):
-    j, n = wp.tid()
+    j, b = wp.tid()
     level = level0 + j * level_stride
     res = resolution[level]
-    size = grad_table.shape[1]
-    g = grad_out[n, level]
-    p = wp.vec3(wp.clamp(x[n, 0], 0.0, 1.0), wp.clamp(x[n, 1], 0.0, 1.0), wp.clamp(x[n, 2], 0.0, 1.0)) * float(res)
-    base = wp.vec3i(wp.min(int(wp.floor(p[0])), res - 1), wp.min(int(wp.floor(p[1])), res - 1),
-                    wp.min(int(wp.floor(p[2])), res - 1))
-    frac = p - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
-    for c in range(8):
-        w = corner_weight(c, frac)
-        idx = corner_index(base, c, res, dense[level], size)
-        wp.atomic_add(grad_table, level, idx, w * g)
+    is_dense = dense[level]
+    fres = float(res)
+    for n in range(b * block, wp.min((b + 1) * block, x.shape[0])):
+        g = grad_out[n, level]
+        base, frac = cell_of(x, n, res, fres)
+        for c in range(8):
+            wp.atomic_add(grad_table, level, corner_index(base, c, res, is_dense, size), corner_weight(c, frac) * g)
 
 
 def _level_chunks(num_levels: int, device: str) -> list[tuple[int, int, int]]:
@@ -99,14 +112,24 @@ def _level_chunks(num_levels: int, device: str) -> list[tuple[int, int, int]]:
     return [(t, parts, len(range(t, num_levels, parts))) for t in range(parts)]
 
 
-def _launch(kernel, n: int, chunks, inputs_fn, device: str) -> None:
+CPU_BLOCK = 256  # points per kernel call on the CPU (see the module docstring)
+
+
+def _size_arg(rows: int) -> int:
+    """The kernels' ``size``: -(rows - 1), a mask, for 2^k rows; else the row count (modulo)."""
+    return -(rows - 1) if rows > 1 and rows & (rows - 1) == 0 else rows
+
+
+def _launch(kernel, n: int, rows: int, chunks, inputs_fn, output, device: str) -> None:
     ensure_loaded(kernel, device)
+    block = CPU_BLOCK if device == "cpu" else 1
 
     def run(chunk):
         level0, stride, count = chunk
         # Level-major order: a thread sweeps all points of one level before the next, so it works in one
         # table (a few MB) at a time instead of jumping between all of them for every point.
-        wp.launch(kernel, dim=(count, n), inputs=inputs_fn(level0, stride), device=device)
+        wp.launch(kernel, dim=(count, -(-n // block)), inputs=[*inputs_fn(level0, stride), _size_arg(rows), block, output],
+                  device=device)
 
     parallel_map(run, chunks)
 
@@ -130,7 +153,8 @@ class HashEncodeFunction(torch.autograd.Function):
             wx, wo = wp.from_torch(x), wp.from_torch(out, dtype=wp.vec2)
             wt = wp.from_torch(table.detach().contiguous(), dtype=wp.vec2)
             wr, wd = wp.from_torch(resolution), wp.from_torch(dense)
-            _launch(hash_forward, n, _level_chunks(num_levels, dev), lambda lo, st: [wx, wt, wr, wd, lo, st, wo], dev)
+            _launch(hash_forward, n, table.shape[1], _level_chunks(num_levels, dev), lambda lo, st: [wx, wt, wr, wd, lo, st],
+                    wo, dev)
         ctx.save_for_backward(x, resolution, dense)
         ctx.table_shape = table.shape
         ctx.leaf_table = table if table.is_leaf and table.requires_grad else None
@@ -153,8 +177,8 @@ class HashEncodeFunction(torch.autograd.Function):
             wg = wp.from_torch(grad_out.contiguous().float().view(n, num_levels, 2), dtype=wp.vec2)
             wr, wd = wp.from_torch(resolution), wp.from_torch(dense)
             wgt = wp.from_torch(grad_table, dtype=wp.vec2)
-            _launch(hash_backward, x.shape[0], _level_chunks(ctx.table_shape[0], dev),
-                    lambda lo, st: [wx, wg, wr, wd, lo, st, wgt], dev)
+            _launch(hash_backward, x.shape[0], ctx.table_shape[1], _level_chunks(ctx.table_shape[0], dev),
+                    lambda lo, st: [wx, wg, wr, wd, lo, st], wgt, dev)
         return None, (None if leaf is not None else grad_table), None, None
 
 
