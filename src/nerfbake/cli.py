@@ -11,6 +11,7 @@ from pathlib import Path
 
 from nerfbake import __version__
 from nerfbake.atomic import atomic_folder, check_output_file, check_output_folder
+from nerfbake.data.normalization import NORMALIZATIONS
 
 
 def _print_json(obj) -> None:
@@ -20,8 +21,7 @@ def _print_json(obj) -> None:
 def cmd_data_info(args) -> int:
     from nerfbake.data.formats import load_dataset
 
-    opts = {"normalize": args.normalize} if args.normalize else {}
-    ds = load_dataset(args.path, format=args.format, downscale=args.downscale, **opts)
+    ds = load_dataset(args.path, format=args.format, downscale=args.downscale, normalize=args.normalize)
     info = ds.info()
     if args.json:
         _print_json(info)
@@ -154,7 +154,7 @@ def cmd_pipeline(args) -> int:
                          eval_views=args.eval_views or None, teacher_steps=args.teacher_steps,
                          distill_steps=args.distill_steps, octree_grid=args.octree_grid, octree_epochs=args.octree_epochs,
                          octree_lr=args.octree_lr, bake_stride=args.bake_stride, teacher=teacher, distill=distill,
-                         downscale=args.downscale)
+                         downscale=args.downscale, normalize=args.normalize)
     results = run_pipeline(cfg, stop_after=args.stop_after, log=lambda line: print(line, file=sys.stderr, flush=True))
     if results:
         _print_summary(Path(args.out), results)
@@ -178,7 +178,7 @@ def cmd_teacher_train(args) -> int:
         cfg = config_from_dict(d.get("train", d))  # a run's config.json or a bare training config
     else:
         cfg = preset(args.field, args.preset)
-    cfg = _override(cfg, args, ("steps", "batch_rays", "downscale", "appearance"))
+    cfg = _override(cfg, args, ("steps", "batch_rays", "downscale", "appearance", "normalize"))
     cfg.seed = args.seed
     if args.tensorboard:
         cfg.tensorboard = True
@@ -254,7 +254,7 @@ def cmd_octree_optimize(args) -> int:
 
     from nerfbake.octree.optimize import optimize_preset, optimize_tree
 
-    cfg = _override(optimize_preset(args.preset), args, ("epochs", "lr", "val_every", "downscale"))
+    cfg = _override(optimize_preset(args.preset), args, ("epochs", "lr", "val_every", "downscale", "normalize"))
     if args.continue_on_decrease:
         cfg = replace(cfg, continue_on_decrease=True)
     check_output_file(args.out, args.overwrite)
@@ -280,7 +280,7 @@ def cmd_octree_eval(args) -> int:
     from nerfbake.octree.evaluate import evaluate_tree
 
     result = evaluate_tree(args.tree, args.data, args.split, args.max_views, args.downscale, args.repeats,
-                           _octree_opts(args), write=not args.no_images)
+                           _octree_opts(args), write=not args.no_images, normalize=args.normalize)
     if args.json:
         _print_json(result)
     else:
@@ -421,6 +421,12 @@ def _overwrite_flag(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output (only once the new one is complete)")
 
 
+NORMALIZE_ARG = dict(choices=NORMALIZATIONS, default="auto",
+                     help="scene normalisation: auto decides from the cameras (forward-facing or 360/object-centric; "
+                          "nerfbake data info says which and why); the others override it (not for Blender scenes)")
+TREE_NORMALIZE_HELP = "the --normalize the tree's teacher was trained with (the tree lives in its frame)"
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="nerfbake", description=__doc__.splitlines()[0])
     parser.add_argument("--debug", action="store_true", help="show the full traceback of an error")
@@ -433,8 +439,7 @@ def build_parser() -> argparse.ArgumentParser:
     info.add_argument("--json", action="store_true", help="print one JSON object")
     info.add_argument("--downscale", type=float, default=1.0, help="image downscale factor (intrinsics scale with it)")
     info.add_argument("--format", choices=["blender", "llff", "colmap", "transforms"], help="skip auto-detection")
-    info.add_argument("--normalize", choices=["auto", "forward-facing", "object-centric", "none"],
-                      help="override the scene normalisation (auto: forward-facing or 360 from the cameras)")
+    info.add_argument("--normalize", **NORMALIZE_ARG)
     info.set_defaults(func=cmd_data_info)
 
     met = sub.add_parser("metrics", help="PSNR, SSIM, LPIPS (alex, vgg) between two images (RGBA on white)")
@@ -482,6 +487,7 @@ def build_parser() -> argparse.ArgumentParser:
     tt.add_argument("--steps", type=int)
     tt.add_argument("--batch-rays", type=int)
     tt.add_argument("--downscale", type=float)
+    tt.add_argument("--normalize", **{**NORMALIZE_ARG, "default": None})
     tt.add_argument("--appearance", choices=["auto", "affine", "none"],
                     help="per-image exposure/white-balance corrections (default none; auto: affine for photographs, none "
                          "for RGBA renders); held-out views are scored at the mean appearance")
@@ -530,6 +536,7 @@ def build_parser() -> argparse.ArgumentParser:
     oo.add_argument("--lr", type=float)
     oo.add_argument("--val-every", type=int)
     oo.add_argument("--downscale", type=float)
+    oo.add_argument("--normalize", **{**NORMALIZE_ARG, "default": None, "help": TREE_NORMALIZE_HELP})
     oo.add_argument("--continue-on-decrease", action="store_true", help="do not stop when validation PSNR drops")
     oo.add_argument("--json", action="store_true")
     oo.set_defaults(func=cmd_octree_optimize)
@@ -553,6 +560,7 @@ def build_parser() -> argparse.ArgumentParser:
     oe.add_argument("--split", default="test")
     oe.add_argument("--max-views", type=int)
     oe.add_argument("--downscale", type=float, default=1.0)
+    oe.add_argument("--normalize", **{**NORMALIZE_ARG, "help": TREE_NORMALIZE_HELP})
     oe.add_argument("--repeats", type=int, default=3, help="timed passes over the views after a warm-up pass")
     oe.add_argument("--step-size", type=float, help="tree units past each leaf exit (1e-4 default)")
     oe.add_argument("--no-images", action="store_true")
@@ -639,6 +647,7 @@ def build_parser() -> argparse.ArgumentParser:
     pl.add_argument("--methods", default="octree,smerf", help="comma-separated subset of octree,smerf")
     pl.add_argument("--k", type=int, default=1, help="SMERF partition: K^3 submodels")
     pl.add_argument("--eval-views", type=int, default=25, help="evenly spaced test views per evaluation (0: all)")
+    pl.add_argument("--normalize", **{**NORMALIZE_ARG, "default": None})
     pl.add_argument("--downscale", type=float, help="image downscale for every stage (default: automatic, photos over "
                     "800 px on the long side for cpu-small, 1600 for paper, are halved until they fit; images_N/ used)")
     pl.add_argument("--teacher-steps", type=int)

@@ -42,6 +42,7 @@ class PipelineConfig:
     field: str = "hash"
     downscale: float | None = None  # None: automatic, from the photos' size and the preset's WORKING_SIZE
     downscale_why: str = ""  # how the downscale was chosen (filled in by run_pipeline)
+    normalize: str | None = None  # the teacher's scene normalisation; None: its own (auto: decided from the cameras)
     eval_views: int | None = 25  # evenly spaced test views (None: the whole split)
     # Overrides of the presets (None keeps the preset's value); the demo uses them to fit in minutes.
     teacher_steps: int | None = None
@@ -117,7 +118,15 @@ def teacher_config(cfg: PipelineConfig):
         t.steps = cfg.teacher_steps
     if cfg.downscale is not None:
         t.downscale = cfg.downscale
+    if cfg.normalize is not None:
+        t.normalize = cfg.normalize
     return t
+
+
+def teacher_normalize(run: Path) -> str:
+    """The normalisation the run's teacher was trained in: trees live in its frame, so fine-tuning and evaluating
+    them must load the photos the same way."""
+    return json.loads((run / "teacher" / "config.json").read_text())["train"].get("normalize", "auto")
 
 
 def require_complete(folder: Path) -> None:
@@ -168,7 +177,7 @@ def run_octree_optimize(cfg: PipelineConfig, run: Path) -> dict:
         o = replace(o, epochs=cfg.octree_epochs)
     if cfg.octree_lr:
         o = replace(o, lr=cfg.octree_lr)
-    o = replace(o, downscale=cfg.downscale or 1.0)
+    o = replace(o, downscale=cfg.downscale or 1.0, normalize=teacher_normalize(run))
     p = octree_paths(run)
     res = optimize_tree(p["raw"], cfg.data, p["optimized"], o)
     return {k: v for k, v in res.items() if k != "history"} | {"history": res.get("history", [])}
@@ -187,7 +196,8 @@ def eval_octree(cfg: PipelineConfig, run: Path) -> dict:
 
     out = {}
     for name, path in octree_paths(run).items():
-        r = evaluate_tree(path, cfg.data, "test", cfg.eval_views, downscale=cfg.downscale or 1.0, repeats=cfg.timing_repeats)
+        r = evaluate_tree(path, cfg.data, "test", cfg.eval_views, downscale=cfg.downscale or 1.0, repeats=cfg.timing_repeats,
+                          normalize=teacher_normalize(run))
         tree = load_tree(path)
         resident = 4 * (tree.data.numel() + tree.child.numel())  # what the renderers hold (float32 leaves)
         out[name] = {"method": f"PlenOctree {name}", **metrics_of(r), "ms_per_frame": r["ms_per_frame"],
@@ -251,7 +261,7 @@ def metrics_of(r: dict) -> dict:
 EVAL_KEYS = ("data", "downscale", "eval_views", "timing_repeats")
 STAGES = [
     Stage("teacher", "teacher", run_teacher, parallel=True,
-          keys=("data", "preset", "field", "downscale", "teacher_steps", "teacher"), output="teacher"),
+          keys=("data", "preset", "field", "downscale", "normalize", "teacher_steps", "teacher"), output="teacher"),
     Stage("teacher_eval", "teacher", eval_teacher, keys=EVAL_KEYS, after=("teacher",)),
     Stage("octree_build", "octree", run_octree_build, parallel=True, keys=("preset", "octree_grid"), after=("teacher",)),
     Stage("octree_optimize", "octree", run_octree_optimize,

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
+from nerfbake.data.errors import DatasetError
 from nerfbake.data.formats import detect_format, load_dataset
 from nerfbake.data.formats.colmap_model import read_points3d_binary
 from nerfbake.data.rays import camera_rays
@@ -184,6 +185,25 @@ def test_scene_kind_is_decided_from_the_cameras(tmp_path, lego, fern):
     assert np.abs(origins).max() == pytest.approx(1.0) and np.linalg.norm(origins.mean(0)[:2]) < 1e-6
     assert load_dataset(root, normalize="forward-facing").normalization.method == "forward-facing"  # the override
     assert load_dataset(lego).scene_kind()[0] == "object-centric"
+
+
+def test_normalize_overrides_the_scene_kind_and_says_so(fern, lego, capsys):
+    """--normalize object-centric makes a forward-facing-looking capture a 360 one (the case of a 360 capture the
+    cameras misjudge); forward-facing forces LLFF's recentring; Blender scenes refuse an override."""
+    from nerfbake.cli import main
+
+    ds = load_dataset(fern, normalize="object-centric")
+    kind, why = ds.scene_kind()
+    assert kind == "unbounded-360" and why.startswith("--normalize object-centric") and "look one way" in why
+    assert ds.normalization.overridden and not load_dataset(fern).normalization.overridden
+    assert main(["data", "info", str(fern), "--normalize", "object-centric", "--json"]) == 0
+    info = json.loads(capsys.readouterr().out)
+    assert info["normalization"] | {"transform": None, "scale": None} == {
+        "method": "object-centric", "why": "--normalize object-centric", "overridden": True, "transform": None, "scale": None}
+    assert main(["data", "info", str(lego), "--normalize", "none"]) == 2
+    assert "Blender-format scene keeps the frame" in capsys.readouterr().err
+    with pytest.raises(DatasetError, match="unknown normalisation 'sideways'"):
+        load_dataset(fern, normalize="sideways")
 
 
 def test_depth_bounds_count_only_the_points_a_camera_sees(tmp_path):

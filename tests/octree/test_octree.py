@@ -404,3 +404,11 @@ def test_an_unbounded_360_teacher_builds_a_tree_over_its_core_and_a_forward_faci
     fern_run = train_teacher(fern, tmp_path / "fern", replace(cfg, steps=2))
     with pytest.raises(ValueError, match="forward-facing.*SMERF"):
         build_octree(fern_run, tmp_path / "fern.npz", BuildConfig(grid=32, samples_per_leaf=2, autoscale_grid=16))
+    # --normalize object-centric: the user says fern is a 360 capture; the teacher records it, and the octree build
+    # reads the photos the same way (a 360 scene: the core and its environment map)
+    fern360 = train_teacher(fern, tmp_path / "fern360", replace(cfg, steps=2, normalize="object-centric"))
+    meta = json.loads((fern360 / "config.json").read_text())
+    assert meta["train"]["normalize"] == "object-centric" and meta["dataset"]["scene_kind"] == "unbounded-360"
+    built = build_octree(fern360, tmp_path / "fern360.npz", BuildConfig(grid=32, samples_per_leaf=2, autoscale_grid=16,
+                                                                        weight_thresh=0.0, env_map_height=4))
+    assert "environment map" in built["region"]

@@ -95,6 +95,11 @@ class Dataset:
                 return "unbounded-360", "a Blender scene whose training cameras stand inside its box (an indoor capture)"
             return "object-centric", "a Blender scene: cameras outside its bounded box"
         layout, why = camera_layout(np.stack([f.camera.c2w for f in train]))
+        norm = self.normalization
+        if norm.overridden and norm.method == "forward-facing":
+            return "forward-facing", norm.why
+        if norm.overridden and norm.method == "object-centric" and layout == "forward-facing":
+            layout, why = "360", f"{norm.why} (the cameras alone suggest forward-facing: {why})"
         if layout == "forward-facing":
             return "forward-facing", why
         if object_box(train, self.points) is not None:

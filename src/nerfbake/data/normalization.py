@@ -9,6 +9,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+NORMALIZATIONS = ("auto", "forward-facing", "object-centric", "none")  # the --normalize choices; auto: from the cameras
+
 
 @dataclass
 class Normalization:
@@ -16,6 +18,7 @@ class Normalization:
     scale: float = 1.0
     method: str = "none"
     why: str = "chosen by the caller"  # how the method was chosen (``auto`` says what it saw in the cameras)
+    overridden: bool = False  # named by the user (--normalize) instead of decided from the cameras
 
     def apply_to_pose(self, c2w: np.ndarray) -> np.ndarray:
         out = self.transform @ c2w
@@ -29,7 +32,8 @@ class Normalization:
         return (points / self.scale - self.transform[:3, 3]) @ self.transform[:3, :3]
 
     def to_json(self) -> dict:
-        return {"method": self.method, "why": self.why, "transform": self.transform.tolist(), "scale": float(self.scale)}
+        return {"method": self.method, "why": self.why, "transform": self.transform.tolist(), "scale": float(self.scale),
+                "overridden": self.overridden}
 
 
 def average_pose(c2ws: np.ndarray) -> np.ndarray:
@@ -129,13 +133,18 @@ def choose(method: str, c2ws: np.ndarray, source, near: float | None = None) -> 
         else:
             method = "forward-facing" if layout == "forward-facing" else "object-centric"
         norm = choose(method, c2ws, source, near)
-        norm.why = why
+        norm.why, norm.overridden = why, False
         return norm
     if method == "forward-facing" and near is not None:
-        return forward_facing(c2ws, near)
-    if method == "object-centric":
-        return object_centric(c2ws)
-    if method == "none":
-        return Normalization()
+        chosen = forward_facing(c2ws, near)
+    elif method == "object-centric":
+        chosen = object_centric(c2ws)
+    elif method == "none":
+        chosen = Normalization()
+    else:
+        chosen = None
+    if chosen is not None:
+        chosen.why, chosen.overridden = f"--normalize {method}", True
+        return chosen
     allowed = "auto, forward-facing, object-centric, none" if near is not None else "auto, object-centric, none"
     raise DatasetError(f"{source}: unknown normalisation {method!r} ({allowed})")

@@ -209,7 +209,7 @@ def build_octree(teacher_run: str | Path, out: str | Path, cfg: BuildConfig) -> 
     depth = cfg.depth
     lo = torch.tensor(meta["box"]["box_min"], dtype=torch.float64)
     hi = torch.tensor(meta["box"]["box_max"], dtype=torch.float64)
-    cameras = load_dataset(meta["data"], downscale=tcfg.downscale).cameras("train")
+    cameras = load_dataset(meta["data"], downscale=tcfg.downscale, normalize=tcfg.normalize).cameras("train")
     if cfg.autoscale:
         lo, hi = autoscale_box(teacher, lo, hi, cameras, cfg)
     sigma = density_grid(teacher, lo, hi, cfg.grid, cfg.chunk, "octree density")

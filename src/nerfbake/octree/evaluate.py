@@ -35,11 +35,12 @@ def time_frames(tree, cameras, opts: RenderOptions, repeats: int = 3) -> float:
 
 
 def evaluate_tree(tree_path: str | Path, data: str | Path, split: str = "test", max_views: int | None = None,
-                  downscale: float = 1.0, repeats: int = 3, opts: RenderOptions | None = None, write: bool = True) -> dict:
+                  downscale: float = 1.0, repeats: int = 3, opts: RenderOptions | None = None, write: bool = True,
+                  normalize: str = "auto") -> dict:
     tree_path = Path(tree_path)
     device = default_device()
     tree = load_tree(tree_path, device)
-    ds = load_dataset(data, downscale=downscale)
+    ds = load_dataset(data, downscale=downscale, normalize=normalize)
     out_dir = tree_path.parent / f"{tree_path.stem}_eval"
 
     bg = tuple(ds.background or (1.0, 1.0, 1.0))

@@ -34,6 +34,7 @@ class OptimizeConfig:
     continue_on_decrease: bool = False
     seed: int = 0
     downscale: float = 1.0
+    normalize: str = "auto"  # must be the teacher's: the tree lives in its normalised frame
 
 
 def optimize_preset(name: str) -> OptimizeConfig:
@@ -70,7 +71,7 @@ def optimize_tree(tree_path: str | Path, data: str | Path, out: str | Path, cfg:
     start = time.time()
     device = default_device()
     tree = load_tree(tree_path, device)
-    ds = load_dataset(data, downscale=cfg.downscale)
+    ds = load_dataset(data, downscale=cfg.downscale, normalize=cfg.normalize)
     train = ds.split("train")
     if not train:
         raise ValueError(f"{data}: no training views to fine-tune on")

@@ -313,7 +313,7 @@ def bake_student(student_dir: str | Path, out: str | Path, stride: int = 2, over
     student, cfg, meta = load_student(student_dir)
     student.to(dp.device)
     teacher, tcfg, tmeta, _ = load_teacher(Path(meta["teacher"]))
-    ds = load_dataset(meta["data"], downscale=meta.get("downscale", 1.0))
+    ds = load_dataset(meta["data"], downscale=meta.get("downscale", 1.0), normalize=meta.get("normalize", "auto"))
     part = student.partition
     train_cams = [ds.frames[i].camera for i in ds.split("train")]
     home = part.assign(np.stack([c.origin for c in train_cams]))
@@ -364,7 +364,8 @@ def bake_student(student_dir: str | Path, out: str | Path, stride: int = 2, over
             stats["submodels"] = dict(sorted(stats["submodels"].items()))
             stats.update({"seconds": time.time() - t_start, "student": str(Path(student_dir).resolve()),
                           "num_submodels": part.num_alive, "partition": part.to_json(), "data": meta["data"],
-                          "downscale": meta.get("downscale", 1.0), "threshold": threshold, "ray_stride": stride,
+                          "downscale": meta.get("downscale", 1.0),
+                          "normalize": meta.get("normalize", "auto"), "threshold": threshold, "ray_stride": stride,
                           "ranks": dp.world})
             (tmp / "bake.json").write_text(json.dumps(stats, indent=2))
             replace_folder(tmp, out)

@@ -218,7 +218,7 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
     dp = DataParallel()
     teacher, tcfg, tmeta, _ = load_teacher(Path(teacher_run))
     teacher.to(dp.device)
-    ds = load_dataset(tmeta["data"], downscale=tcfg.downscale)
+    ds = load_dataset(tmeta["data"], downscale=tcfg.downscale, normalize=tcfg.normalize)
     train_idx = ds.split("train")
     origins = np.stack([ds.frames[i].camera.origin for i in train_idx])
     partition = Partition.from_cameras(origins, cfg.k)
@@ -241,6 +241,7 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
             console.print(f"resuming {out} at step {start}")
     meta = {"kind": "smerf-student", "distill": to_jsonable(cfg), "partition": partition.to_json(),
             "teacher": str(Path(teacher_run).resolve()), "data": tmeta["data"], "downscale": tcfg.downscale,
+            "normalize": tcfg.normalize,
             "num_submodels": partition.num_alive, "git": git_revision(), "world_size": dp.world, "complete": False}
     if dp.is_main:
         out.mkdir(parents=True, exist_ok=True)

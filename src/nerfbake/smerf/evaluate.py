@@ -54,7 +54,8 @@ def evaluate_student(student_dir: str | Path, data: str | Path | None = None, sp
     dev = default_device()
     student.to(dev)
     teacher = load_teacher(Path(meta["teacher"]))[0].to(dev)
-    ds = load_dataset(data or meta["data"], downscale=downscale or meta.get("downscale", 1.0))
+    ds = load_dataset(data or meta["data"], downscale=downscale or meta.get("downscale", 1.0),
+                      normalize=meta.get("normalize", "auto"))
     out_dir = student_dir / "eval"
     result = evaluate_views(lambda cam, bg: render_student_camera(student, teacher, cam, bg), ds, split, max_views,
                             out_dir / split if write_images else None, desc="student")
@@ -86,7 +87,7 @@ def evaluate_assets(assets: str | Path, data: str | Path | None = None, split: s
     scene = SceneAssets.open(assets)
     if data is None:
         data = record.get("data")
-    ds = load_dataset(data, downscale=downscale or record.get("downscale", 1.0))
+    ds = load_dataset(data, downscale=downscale or record.get("downscale", 1.0), normalize=record.get("normalize", "auto"))
     out_dir = assets.with_name(assets.name + "_eval")
 
     def render(cam, bg):

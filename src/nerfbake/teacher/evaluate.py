@@ -38,7 +38,7 @@ def render_camera(model, camera: Camera, background=(1.0, 1.0, 1.0), chunk: int 
 
 def evaluate_teacher(run: Path, split: str = "test", max_views: int | None = None, write_images: bool = True) -> dict:
     model, cfg, meta, _ = load_teacher(run)
-    ds = load_dataset(meta["data"], downscale=cfg.downscale)
+    ds = load_dataset(meta["data"], downscale=cfg.downscale, normalize=cfg.normalize)
     result = evaluate_views(lambda cam, bg: render_camera(model, cam, bg)["rgb"], ds, split, max_views,
                             Path(run) / "eval" / split if write_images else None, desc="eval")
     result.update({"teacher": cfg.field, "preset": cfg.preset, "data": meta["data"], "config": meta["train"],

@@ -23,6 +23,7 @@ class TeacherTrainConfig:
     weight_decay: float = 1e-6
     seed: int = 0
     downscale: float = 1.0
+    normalize: str = "auto"  # the scene normalisation (data/formats NORMALIZATIONS); auto decides from the cameras
     # Per-image exposure / white-balance corrections (teacher/appearance.py): "affine", "auto" (affine for photographs,
     # none for RGBA renders) or "none". Off by default: scored at the mean appearance, held-out views lost 0.64 dB
     # with them on the phone clip (600 steps: 22.13 vs 22.77) and 0.04 dB on fern.

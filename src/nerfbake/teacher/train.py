@@ -66,6 +66,7 @@ def config_from_dict(d: dict) -> TeacherTrainConfig:
     prop = ProposalConfig(**h.pop("proposal")) if "proposal" in h else ProposalConfig()
     h.setdefault("unbounded_sampler", "proposal")  # runs made before the contracted occupancy grid
     d.setdefault("appearance", "none")  # runs made before per-image appearance
+    d.setdefault("normalize", "auto")  # runs made before --normalize
     hash_cfg = HashTeacherConfig(field=HashSHConfig(**h.pop("field")), proposal=prop, **h)
     nerf_cfg = NeRFSHTeacherConfig(field=NeRFSHConfig(**n.pop("field")), **n)
     return TeacherTrainConfig(hash=hash_cfg, nerf_sh=nerf_cfg, **d)
@@ -168,7 +169,7 @@ def train_teacher(data: str | Path, out: str | Path, cfg: TeacherTrainConfig, re
     out = Path(out)
     dp = DataParallel()
     torch.manual_seed(cfg.seed)
-    ds = load_dataset(data, downscale=cfg.downscale)
+    ds = load_dataset(data, downscale=cfg.downscale, normalize=cfg.normalize)
     box = scene_box(ds)
     ckpt_path = out / CHECKPOINT
     if (out / CONFIG).is_file() and not resume and dp.is_main:

@@ -5,6 +5,7 @@ from pathlib import Path
 
 from nerfbake.data.dataset import Dataset
 from nerfbake.data.errors import DatasetError
+from nerfbake.data.normalization import NORMALIZATIONS
 from nerfbake.errors import reading
 
 FORMATS = ("blender", "llff", "colmap", "transforms")
@@ -35,10 +36,19 @@ def detect_format(root: Path) -> str:
     )
 
 
-def load_dataset(root: str | Path, format: str | None = None, downscale: float = 1.0, **options) -> Dataset:
-    """Read any supported dataset; ``format`` None auto-detects. Options are passed to the format's reader."""
+def load_dataset(root: str | Path, format: str | None = None, downscale: float = 1.0, normalize: str = "auto",
+                 **options) -> Dataset:
+    """Read any supported dataset; ``format`` None auto-detects. ``normalize`` overrides the scene normalisation
+    the cameras suggest (Blender scenes keep their own frame). Options are passed to the format's reader."""
     root = Path(root)
     fmt = format or detect_format(root)
+    if normalize not in NORMALIZATIONS:
+        raise DatasetError(f"{root}: unknown normalisation {normalize!r}; choose one of {', '.join(NORMALIZATIONS)}")
+    if normalize != "auto":
+        if fmt == "blender":
+            raise DatasetError(f"{root}: a Blender-format scene keeps the frame it was rendered in; --normalize applies to "
+                               "LLFF, COLMAP and transforms.json captures (leave it at auto)")
+        options["normalize"] = normalize
     if fmt == "blender":
         from nerfbake.data.formats.blender import read_blender as reader
     elif fmt == "llff":
