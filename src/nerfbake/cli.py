@@ -189,7 +189,8 @@ def cmd_teacher_train(args) -> int:
 def cmd_teacher_eval(args) -> int:
     from nerfbake.teacher.evaluate import evaluate_teacher
 
-    result = evaluate_teacher(Path(args.run), args.split, args.max_views, write_images=not args.no_images)
+    result = evaluate_teacher(Path(args.run), args.split, args.max_views, write_images=not args.no_images,
+                              appearance_fit=args.appearance_fit)
     if args.json:
         _print_json(result)
     else:
@@ -502,6 +503,9 @@ def build_parser() -> argparse.ArgumentParser:
     te.add_argument("--max-views", type=int)
     te.add_argument("--json", action="store_true")
     te.add_argument("--no-images", action="store_true")
+    te.add_argument("--appearance-fit", choices=["none", "half"], default="none",
+                    help="half: fit an affine colour map on each held-out photo's left half, score its right half "
+                         "(NeRF-W's protocol for photos with their own exposure)")
     te.set_defaults(func=cmd_teacher_eval)
     tr = teacher.add_parser("render", help="render camera poses from a transforms-style JSON")
     tr.add_argument("--run", required=True)

