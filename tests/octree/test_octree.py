@@ -233,6 +233,23 @@ def test_environment_map_survives_save_compress_and_load(tmp_path):
         load_tree(tmp_path / "bad.npz")
 
 
+def test_densities_beyond_half_precision_saturate_instead_of_becoming_inf(tmp_path):
+    """volrend stores leaves in float16 (max 65504); a teacher's density can be larger. Saved trees saturate and
+    load back (an inf would make every later stage refuse the file); NaN is refused before anything is written."""
+    tree = random_tree(28, seed=6)
+    leaf = int(torch.nonzero(tree.child.reshape(-1) == 0)[0])
+    tree.data.view(-1, 28)[leaf, -1] = 1e6
+    save_tree(tree, tmp_path / "big.npz")
+    back = load_tree(tmp_path / "big.npz")
+    assert float(back.data.view(-1, 28)[leaf, -1]) == 65504.0 and volrend_problems(tmp_path / "big.npz") == []
+    compress_tree(tmp_path / "big.npz", tmp_path / "big_c.npz")
+    assert torch.isfinite(load_tree(tmp_path / "big_c.npz").data).all()
+    tree.data.view(-1, 28)[leaf, 0] = float("nan")
+    with pytest.raises(ValueError, match="NaN"):
+        save_tree(tree, tmp_path / "nan.npz")
+    assert not (tmp_path / "nan.npz").exists()
+
+
 def test_tree_from_cells_has_exactly_those_leaves():
     rng = np.random.default_rng(3)
     cells = np.unique(rng.integers(0, 32, (500, 3)), axis=0)

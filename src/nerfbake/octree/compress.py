@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from nerfbake.octree.io import env_map_arrays, load_tree, write_npz
+from nerfbake.octree.io import env_map_arrays, half_precision, load_tree, write_npz
 from nerfbake.progress import progress_bar
 
 
@@ -111,7 +111,7 @@ def compress_tree(tree_path: str | Path, out: str | Path, bits: int = 16, retain
         "data_format": np.array(f"SH{nb}"),
         "quant_colors": quant_colors,
         "quant_map": quant_map,
-        "sigma": np.where(alive, sigma, 0).astype(np.float16),
+        "sigma": half_precision(np.where(alive, sigma, 0), "densities"),
         **env_map_arrays(tree),
     }
     if retain:

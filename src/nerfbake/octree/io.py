@@ -40,6 +40,19 @@ def env_map_arrays(tree: Octree) -> dict[str, np.ndarray]:
     return {"env_map": (tree.env_map.detach().cpu().clamp(0, 1) * 255).round().to(torch.uint8).numpy()}
 
 
+FLOAT16_MAX = float(np.finfo(np.float16).max)
+
+
+def half_precision(values: np.ndarray, what: str) -> np.ndarray:
+    """``values`` as float16, the precision volrend requires, saturated at +-65504. A teacher's density can exceed
+    that (trunc_exp near a surface: the phone clip's tree held inf and its fine-tuning refused it); any density over
+    a few hundred is opaque across a leaf already. NaN is a bug upstream and is refused, not written."""
+    values = np.asarray(values, dtype=np.float32)
+    if np.isnan(values).any():
+        raise ValueError(f"refusing to save {what} holding NaN")
+    return np.clip(values, -FLOAT16_MAX, FLOAT16_MAX).astype(np.float16)
+
+
 def tree_arrays(tree: Octree) -> dict[str, np.ndarray]:
     """The svox key set for ``tree`` (what :func:`save_tree` writes), plus its environment map if it has one."""
     return {**env_map_arrays(tree), 
@@ -52,7 +65,7 @@ def tree_arrays(tree: Octree) -> dict[str, np.ndarray]:
         "offset": tree.offset.cpu().numpy().astype(np.float32),
         "depth_limit": np.array(tree.depth_limit, dtype=np.int64),
         "geom_resize_fact": np.array(1.0, dtype=np.float64),
-        "data": tree.data.detach().cpu().numpy().astype(np.float16),
+        "data": half_precision(tree.data.detach().cpu().numpy(), "leaf data"),
         "data_format": np.array(tree.data_format),
     }
 
