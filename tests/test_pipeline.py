@@ -105,6 +105,17 @@ def test_photos_over_the_working_size_are_downscaled_and_why_is_said(fox, fern):
     assert resolve_downscale(PipelineConfig(data=str(fox), out="unused", downscale=1))[0] == 1
 
 
+def test_a_setting_added_later_leaves_earlier_fingerprints_as_they_were():
+    """A run recorded before --normalize existed resumes without redoing its teacher when --normalize is not given,
+    and giving it runs the teacher again."""
+    from nerfbake.pipeline import STAGES, fingerprints
+
+    settings = vars(PipelineConfig(data=".", out="unused"))
+    before = [replace(s, keys=tuple(k for k in s.keys if k != "normalize")) for s in STAGES]  # the older stage table
+    assert fingerprints(STAGES, settings) == fingerprints(before, settings)
+    assert fingerprints(STAGES, {**settings, "normalize": "none"})["teacher"] != fingerprints(before, settings)["teacher"]
+
+
 def test_a_method_that_cannot_run_on_a_scene_is_skipped_with_a_reason(tmp_path):
     from nerfbake.pipeline import STAGES, skip_reason
     from nerfbake.train.loop import write_json_atomic

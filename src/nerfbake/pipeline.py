@@ -301,8 +301,13 @@ def data_fingerprint(data: str | Path) -> list:
     return [str(root)] + sorted([str(p.relative_to(base)), p.stat().st_size, p.stat().st_mtime_ns] for p in files)
 
 
+# Settings added after runs were recorded, with the value that means "not given": at that value they are left out
+# of the fingerprint, so a finished stage of an earlier version is not redone for a setting it could not have had.
+ADDED_SETTINGS = {"normalize": None}
+
+
 def stage_settings(stage: Stage, settings: dict) -> dict:
-    return {k: settings[k] for k in stage.keys}
+    return {k: settings[k] for k in stage.keys if k not in ADDED_SETTINGS or settings[k] != ADDED_SETTINGS[k]}
 
 
 def fingerprints(stages: list[Stage], settings: dict) -> dict[str, str]:
