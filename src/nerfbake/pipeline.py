@@ -195,9 +195,10 @@ def eval_octree(cfg: PipelineConfig, run: Path) -> dict:
     from nerfbake.octree.io import load_tree
 
     out = {}
+    normalize = teacher_normalize(run)
     for name, path in octree_paths(run).items():
         r = evaluate_tree(path, cfg.data, "test", cfg.eval_views, downscale=cfg.downscale or 1.0, repeats=cfg.timing_repeats,
-                          normalize=teacher_normalize(run))
+                          normalize=normalize)
         tree = load_tree(path)
         resident = 4 * (tree.data.numel() + tree.child.numel())  # what the renderers hold (float32 leaves)
         out[name] = {"method": f"PlenOctree {name}", **metrics_of(r), "ms_per_frame": r["ms_per_frame"],

@@ -18,9 +18,8 @@ from dataclasses import replace
 
 import torch
 
-from nerfbake.render.envmap import sample_equirect
-
 from nerfbake.kernels import cpu_threads, device_of, ensure_loaded, launch_chunks, parallel_map, warp
+from nerfbake.render.envmap import sample_equirect
 
 wp = warp()
 wp.set_module_options({"enable_backward": False})

@@ -22,6 +22,7 @@ import torch
 
 from nerfbake.atomic import atomic_file
 from nerfbake.errors import NerfbakeError, reading
+from nerfbake.eval.views import to_png
 from nerfbake.octree.tree import N, Octree, basis_from_format
 
 
@@ -37,7 +38,7 @@ def env_map_arrays(tree: Octree) -> dict[str, np.ndarray]:
     """``{"env_map": uint8 (H, W, 3)}`` for a tree with an environment map, else nothing."""
     if tree.env_map is None:
         return {}
-    return {"env_map": (tree.env_map.detach().cpu().clamp(0, 1) * 255).round().to(torch.uint8).numpy()}
+    return {"env_map": to_png(tree.env_map.detach().cpu().numpy())}
 
 
 FLOAT16_MAX = float(np.finfo(np.float16).max)
