@@ -1,11 +1,17 @@
-"""Training rate of the hash teacher on an unbounded (contracted) capture, sampler variants in the same process (the
-ratio is the trustworthy figure on a noisy machine): proposal sampling with colour for every sample (before),
-with colour only for samples that weigh (now), and the occupancy grid over contracted space.
+"""Training rate of the hash teacher on an unbounded (contracted) capture, variants in the same process (the ratio is
+the trustworthy figure on a noisy machine):
 
-    python benchmarks/unbounded_speed.py --data outputs/bonsai [--downscale 2] [--warmup 300] [--steps 30]
+* ``before``: the path before the cache-sized MLP pass: 64 proposal + 32 final samples, float32 MLPs run as one
+  whole-batch layer sequence;
+* ``chunked``: the same samples and precision, MLPs in 4096-row chunks (fields/encoding.py: MLP);
+* ``now``: the cpu-small preset (chunked, bfloat16 MLPs where the CPU has them);
+* ``32+16``: ``now`` with 32 proposal + 16 final samples (twice the rate, but 5 dB lower held-out on bonsai);
+* ``grid``: the occupancy grid over contracted space instead of proposal sampling.
+
+    python benchmarks/unbounded_speed.py --data outputs/real/bonsai_data --downscale 2 [--warmup 300] [--steps 30]
 
 Prints one JSON object: per variant train rays/s, samples per ray, ms per step, render rays/s, and the ratio
-against the all-colour proposal path.
+against ``before``.
 """
 from __future__ import annotations
 
@@ -16,9 +22,11 @@ import sys
 from pathlib import Path
 
 import torch
+from torch import nn
 
 from nerfbake.data.formats import load_dataset
 from nerfbake.data.pixels import PixelStore
+from nerfbake.fields.encoding import MLP
 from nerfbake.teacher.presets import preset
 from nerfbake.teacher.train import scene_box
 from nerfbake.train.loop import git_revision
@@ -27,18 +35,22 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from teacher_speed import time_training  # noqa: E402
 
 
-def _set(**kw):
-    def apply(hash_cfg):
+def _set(mlp_forward=None, **kw):
+    """A variant: settings of the preset's hash teacher, and optionally the MLPs' forward."""
+    def apply(cfg):
         for k, v in kw.items():
-            setattr(hash_cfg, k, v)
+            owner = cfg.hash.proposal if k in ("proposal_samples", "final_samples") else cfg.hash
+            setattr(owner, k, v)
+        return mlp_forward or MLP.forward
     return apply
 
 
 VARIANTS = {
-    # what the proposal path did before colour culling: colour for every final sample
-    "proposal-all-colour": _set(unbounded_sampler="proposal", color_weight_thresh=-1.0),
-    "proposal": _set(unbounded_sampler="proposal"),  # colour only where the weight exceeds 1e-5 (the default)
-    "grid": _set(unbounded_sampler="grid"),  # occupancy grid over contracted space, culled gradient pass
+    "before": _set(nn.Sequential.forward, proposal_samples=64, final_samples=32, unbounded_mlp_dtype="float32"),
+    "chunked": _set(proposal_samples=64, final_samples=32, unbounded_mlp_dtype="float32"),
+    "now": _set(),
+    "32+16": _set(proposal_samples=32, final_samples=16),
+    "grid": _set(unbounded_sampler="grid"),
 }
 
 
@@ -48,7 +60,7 @@ def main() -> None:
     ap.add_argument("--downscale", type=float, default=1.0)
     ap.add_argument("--warmup", type=int, default=300, help="steps before timing (the grid prunes during them)")
     ap.add_argument("--steps", type=int, default=30)
-    ap.add_argument("--variants", default="proposal-all-colour,proposal,grid", help=", ".join(VARIANTS))
+    ap.add_argument("--variants", default="before,chunked,now", help=", ".join(VARIANTS))
     args = ap.parse_args()
     ds = load_dataset(args.data, downscale=args.downscale)
     box = scene_box(ds)
@@ -58,15 +70,19 @@ def main() -> None:
     result = {"benchmark": "unbounded_speed", "data": args.data, "downscale": ds.downscale, "machine": platform.machine(),
               "cpus": torch.get_num_threads(), "device": "cuda" if torch.cuda.is_available() else "cpu",
               "git": git_revision()}
+    chunked_forward = MLP.forward
     for name in args.variants.split(","):
         cfg = preset("hash", "cpu-small")
-        VARIANTS[name](cfg.hash)
-        result[name] = time_training("hash", ds, store, args.warmup, args.steps, cfg)
+        MLP.forward = VARIANTS[name](cfg)
+        try:
+            result[name] = time_training("hash", ds, store, args.warmup, args.steps, cfg)
+        finally:
+            MLP.forward = chunked_forward
         print(f"{name}: {result[name]['train_rays_per_s']:.0f} rays/s", file=sys.stderr, flush=True)
-    base = result.get("proposal-all-colour")
+    base = result.get("before")
     for name in args.variants.split(","):
         if base is not None:
-            result[name]["train_rays_over_all_colour_proposal"] = result[name]["train_rays_per_s"] / base["train_rays_per_s"]
+            result[name]["train_rays_over_before"] = result[name]["train_rays_per_s"] / base["train_rays_per_s"]
     json.dump(result, sys.stdout, indent=2)
     print()
 

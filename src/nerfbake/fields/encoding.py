@@ -51,6 +51,79 @@ class HashGrid(nn.Module):
         return hash_encode(x01, self.table, self.resolution, self.dense)
 
 
+# Rows per chunk of the CPU MLP pass: a (4096, 64) float32 activation is 1 MB and stays in cache. A whole batch's
+# (131072, 64) is 32 MB, and every matmul, ReLU and its backward streams it through memory (measured on 2 cores:
+# a 32 -> 64 -> 16 forward over 131k rows, 33.5 ms whole, 7.5 ms in 4096-row chunks).
+CPU_CHUNK_ROWS = 4096
+
+
+class _ChunkedReLUMLP(torch.autograd.Function):
+    """Forward and backward of Linear/ReLU/.../Linear one row chunk at a time. Only the input is kept for the
+    backward, which recomputes each chunk's hidden activations (a matmul each, cheaper than storing them).
+    ``dtype`` bfloat16 runs the matmuls and activations in bfloat16 (inputs, outputs and gradients stay float32;
+    weight gradients are summed in float32)."""
+
+    @staticmethod
+    def forward(ctx, x, chunk, dtype, *params):
+        weights = [w.to(dtype) for w in params[0::2]]
+        biases = [b.to(dtype) for b in params[1::2]]
+        out = x.new_empty(x.shape[0], weights[-1].shape[0])
+        for s in range(0, x.shape[0], chunk):
+            h = x[s: s + chunk].to(dtype)
+            for w, b in zip(weights[:-1], biases[:-1]):
+                h = torch.addmm(b, h, w.t()).relu_()
+            out[s: s + chunk] = torch.addmm(biases[-1], h, weights[-1].t())
+        ctx.chunk, ctx.dtype = chunk, dtype
+        ctx.save_for_backward(x, *params)
+        return out
+
+    @staticmethod
+    def backward(ctx, grad_out):
+        x, *params = ctx.saved_tensors
+        dtype = ctx.dtype
+        weights = [w.to(dtype) for w in params[0::2]]
+        biases = [b.to(dtype) for b in params[1::2]]
+        grad_w = [torch.zeros_like(w) for w in params[0::2]]
+        grad_b = [torch.zeros_like(b) for b in params[1::2]]
+        grad_x = torch.empty_like(x) if ctx.needs_input_grad[0] else None
+        for s in range(0, x.shape[0], ctx.chunk):
+            acts = [x[s: s + ctx.chunk].to(dtype)]
+            for w, b in zip(weights[:-1], biases[:-1]):
+                acts.append(torch.addmm(b, acts[-1], w.t()).relu_())
+            g = grad_out[s: s + ctx.chunk].to(dtype)
+            for i in range(len(weights) - 1, -1, -1):
+                grad_w[i] += g.t() @ acts[i]
+                grad_b[i] += g.sum(0, dtype=grad_b[i].dtype)
+                if i > 0:
+                    g = torch.ops.aten.threshold_backward(g @ weights[i], acts[i], 0.0)
+                elif grad_x is not None:
+                    grad_x[s: s + ctx.chunk] = g @ weights[0]
+        grads = [v for pair in zip(grad_w, grad_b) for v in pair]
+        return (grad_x, None, None, *grads)
+
+
+class MLP(nn.Sequential):
+    """Linear/ReLU layers (an ``nn.Sequential``, so checkpoints keep their keys). On the CPU the pass runs in
+    row chunks that stay in cache (:data:`CPU_CHUNK_ROWS`); on a GPU it is the plain sequence. ``compute_dtype``
+    bfloat16 computes the CPU pass in bfloat16 where the CPU has native bfloat16 matmuls (AVX512-BF16/AMX)."""
+
+    compute_dtype: torch.dtype = torch.float32
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        linears = [m for m in self if isinstance(m, nn.Linear)]
+        if x.is_cuda or x.dim() != 2 or len(linears) != (len(self) + 1) // 2 \
+                or not all(isinstance(m, nn.ReLU) for m in self[1::2]):
+            return super().forward(x)
+        params = [p for m in linears for p in (m.weight, m.bias)]
+        bf16 = self.compute_dtype == torch.bfloat16 and x.dtype == torch.float32 and cpu_has_bf16()
+        return _ChunkedReLUMLP.apply(x.contiguous(), CPU_CHUNK_ROWS, torch.bfloat16 if bf16 else x.dtype, *params)
+
+
+def cpu_has_bf16() -> bool:
+    """Whether this CPU multiplies bfloat16 matrices natively (elsewhere bfloat16 would be emulated, slowly)."""
+    return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
+
+
 def mlp(in_dim: int, hidden: int, layers: int, out_dim: int, act=nn.ReLU) -> nn.Sequential:
     """``layers`` hidden layers of width ``hidden``; the output layer has no activation."""
     mods: list[nn.Module] = []
@@ -59,7 +132,7 @@ def mlp(in_dim: int, hidden: int, layers: int, out_dim: int, act=nn.ReLU) -> nn.
         mods += [nn.Linear(d, hidden), act()]
         d = hidden
     mods.append(nn.Linear(d, out_dim))
-    return nn.Sequential(*mods)
+    return MLP(*mods)
 
 
 class TruncExp(torch.autograd.Function):

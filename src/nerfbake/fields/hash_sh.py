@@ -16,6 +16,9 @@ from nerfbake.render.contraction import contract
 from nerfbake.render.sh import sh_num_coeffs
 
 
+MLP_DTYPES = {"float32": torch.float32, "bfloat16": torch.bfloat16}
+
+
 @dataclass
 class HashSHConfig:
     levels: int = 16
@@ -39,6 +42,13 @@ class HashSHField(nn.Module):
         self.density_net = mlp(self.grid.out_dim, cfg.hidden, 1, 1 + cfg.geo_features)
         self.num_basis = sh_num_coeffs(cfg.sh_degree)
         self.color_net = mlp(cfg.geo_features, cfg.hidden, cfg.color_layers, 3 * self.num_basis)
+
+    def set_mlp_dtype(self, name: str) -> None:
+        """"bfloat16": both MLPs' CPU pass computes in bfloat16 where the CPU multiplies it natively
+        (fields/encoding.py: MLP); elsewhere, and on GPUs, float32. Inputs and outputs stay float32."""
+        if name not in MLP_DTYPES:
+            raise ValueError(f"MLP dtype {name!r}: choose one of {', '.join(MLP_DTYPES)}")
+        self.density_net.compute_dtype = self.color_net.compute_dtype = MLP_DTYPES[name]
 
     @property
     def sh_degree(self) -> int:

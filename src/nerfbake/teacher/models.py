@@ -86,6 +86,10 @@ class HashTeacherConfig:
     early_stop_transmittance: float = 1e-4
     cull_alpha: float = 1e-4
     proposal: ProposalConfig = dc_field(default_factory=ProposalConfig)  # unbounded scenes
+    # The field's MLPs on unbounded scenes: "bfloat16" computes their CPU pass in bfloat16 where the CPU has native
+    # bfloat16 matmuls (HashSHField.set_mlp_dtype). Measured on real captures only, so bounded scenes (lego's
+    # figures) keep float32; teachers recorded before it read float32.
+    unbounded_mlp_dtype: str = "float32"
 
 
 @dataclass
@@ -112,6 +116,8 @@ class HashTeacher(nn.Module):
         super().__init__()
         self.cfg, self.box = cfg, box
         self.field = HashSHField(cfg.field, box.box_min, box.box_max, contracted=box.contracted)
+        if box.contracted:
+            self.field.set_mlp_dtype(cfg.unbounded_mlp_dtype)
         size = torch.tensor(box.box_max) - torch.tensor(box.box_min)
         self.dt = float(size.norm()) / cfg.render_steps
         if self.uses_proposal:
