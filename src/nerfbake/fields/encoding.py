@@ -1,6 +1,7 @@
 """Input encodings: NeRF's positional encoding and instant-ngp's multiresolution hash grid."""
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
@@ -51,9 +52,11 @@ class HashGrid(nn.Module):
         return hash_encode(x01, self.table, self.resolution, self.dense)
 
 
-# Rows per chunk of the CPU MLP pass: a (4096, 64) float32 activation is 1 MB and stays in cache. A whole batch's
-# (131072, 64) is 32 MB, and every matmul, ReLU and its backward streams it through memory (measured on 2 cores:
-# a 32 -> 64 -> 16 forward over 131k rows, 33.5 ms whole, 7.5 ms in 4096-row chunks).
+# Rows per chunk of the CPU MLP pass: a (4096, 64) float32 activation is 1 MB and stays in cache; a whole batch's
+# (131072, 64) is 32 MB, and every matmul, ReLU and ReLU backward streams it through memory. Measured on 2 cores: a
+# 32 -> 64 -> 16 forward over 131k rows, 33.5 ms whole, 7.5 ms chunked; the unbounded teacher's no-gradient renders
+# 16.3k -> 28.2k rays/s; its training 9.3k rays/s either way in float32, and in bfloat16 7.3-8.4k whole against
+# 9.4-10.7k chunked (benchmarks/unbounded_speed.py).
 CPU_CHUNK_ROWS = 4096
 
 
@@ -119,6 +122,7 @@ class MLP(nn.Sequential):
         return _ChunkedReLUMLP.apply(x.contiguous(), CPU_CHUNK_ROWS, torch.bfloat16 if bf16 else x.dtype, *params)
 
 
+@functools.cache
 def cpu_has_bf16() -> bool:
     """Whether this CPU multiplies bfloat16 matrices natively (elsewhere bfloat16 would be emulated, slowly)."""
     return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
