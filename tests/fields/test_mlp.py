@@ -10,10 +10,6 @@ from nerfbake.fields.encoding import _ChunkedReLUMLP, cpu_has_bf16, mlp
 from nerfbake.fields.hash_sh import HashSHConfig, HashSHField
 
 
-def _grads(y, inputs, g):
-    return torch.autograd.grad(y, inputs, g)
-
-
 @pytest.mark.parametrize("layers", [0, 1, 2])
 def test_chunked_pass_equals_the_layer_sequence(layers, monkeypatch):
     monkeypatch.setattr(encoding, "CPU_CHUNK_ROWS", 37)  # several chunks and a ragged last one
@@ -26,7 +22,7 @@ def test_chunked_pass_equals_the_layer_sequence(layers, monkeypatch):
     torch.testing.assert_close(y, y_plain, rtol=0, atol=1e-12)
     g = torch.randn_like(y)
     inputs = [x, *net.parameters()]
-    for a, b in zip(_grads(y, inputs, g), _grads(y_plain, inputs, g)):
+    for a, b in zip(torch.autograd.grad(y, inputs, g), torch.autograd.grad(y_plain, inputs, g)):
         torch.testing.assert_close(a, b, rtol=1e-10, atol=1e-10)
 
 

@@ -60,6 +60,19 @@ class HashGrid(nn.Module):
 CPU_CHUNK_ROWS = 4096
 
 
+def _layers_in(dtype, params):
+    """(weights, biases) of the flat [w0, b0, w1, b1, ...] parameter list, cast to the compute dtype."""
+    return [w.to(dtype) for w in params[0::2]], [b.to(dtype) for b in params[1::2]]
+
+
+def _hidden_activations(x, weights, biases) -> list[torch.Tensor]:
+    """[x, h1, ..., hk]: the input chunk and each hidden layer's ReLU output (everything but the output layer)."""
+    acts = [x]
+    for w, b in zip(weights[:-1], biases[:-1]):
+        acts.append(torch.addmm(b, acts[-1], w.t()).relu_())
+    return acts
+
+
 class _ChunkedReLUMLP(torch.autograd.Function):
     """Forward and backward of Linear/ReLU/.../Linear one row chunk at a time. Only the input is kept for the
     backward, which recomputes each chunk's hidden activations (a matmul each, cheaper than storing them).
@@ -68,13 +81,10 @@ class _ChunkedReLUMLP(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, x, chunk, dtype, *params):
-        weights = [w.to(dtype) for w in params[0::2]]
-        biases = [b.to(dtype) for b in params[1::2]]
+        weights, biases = _layers_in(dtype, params)
         out = x.new_empty(x.shape[0], weights[-1].shape[0])
         for s in range(0, x.shape[0], chunk):
-            h = x[s: s + chunk].to(dtype)
-            for w, b in zip(weights[:-1], biases[:-1]):
-                h = torch.addmm(b, h, w.t()).relu_()
+            h = _hidden_activations(x[s: s + chunk].to(dtype), weights, biases)[-1]
             out[s: s + chunk] = torch.addmm(biases[-1], h, weights[-1].t())
         ctx.chunk, ctx.dtype = chunk, dtype
         ctx.save_for_backward(x, *params)
@@ -84,15 +94,12 @@ class _ChunkedReLUMLP(torch.autograd.Function):
     def backward(ctx, grad_out):
         x, *params = ctx.saved_tensors
         dtype = ctx.dtype
-        weights = [w.to(dtype) for w in params[0::2]]
-        biases = [b.to(dtype) for b in params[1::2]]
+        weights, biases = _layers_in(dtype, params)
         grad_w = [torch.zeros_like(w) for w in params[0::2]]
         grad_b = [torch.zeros_like(b) for b in params[1::2]]
         grad_x = torch.empty_like(x) if ctx.needs_input_grad[0] else None
         for s in range(0, x.shape[0], ctx.chunk):
-            acts = [x[s: s + ctx.chunk].to(dtype)]
-            for w, b in zip(weights[:-1], biases[:-1]):
-                acts.append(torch.addmm(b, acts[-1], w.t()).relu_())
+            acts = _hidden_activations(x[s: s + ctx.chunk].to(dtype), weights, biases)
             g = grad_out[s: s + ctx.chunk].to(dtype)
             for i in range(len(weights) - 1, -1, -1):
                 grad_w[i] += g.t() @ acts[i]
