@@ -39,7 +39,7 @@ def _set(mlp_forward=None, **kw):
     """A variant: settings of the preset's hash teacher, and optionally the MLPs' forward."""
     def apply(cfg):
         for k, v in kw.items():
-            owner = cfg.hash.proposal if k in ("proposal_samples", "final_samples") else cfg.hash
+            owner = cfg.hash.proposal if hasattr(cfg.hash.proposal, k) else cfg.hash
             setattr(owner, k, v)
         return mlp_forward or MLP.forward
     return apply

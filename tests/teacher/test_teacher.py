@@ -13,7 +13,7 @@ from nerfbake.fields.hash_sh import HashSHConfig
 from nerfbake.render.quadrature import composite, weights_from_density
 from nerfbake.render.sh import eval_sh_color
 from nerfbake.teacher.models import HashTeacherConfig
-from nerfbake.teacher.train import load_teacher, train_teacher
+from nerfbake.teacher.train import config_from_dict, load_teacher, train_teacher
 from tests.helpers import one_and_two_processes, tiny_config
 
 
@@ -88,6 +88,10 @@ def test_checkpoint_round_trip_and_errors(tiny_scene, tmp_path):
     run = train_teacher(tiny_scene, tmp_path / "run", tiny_config(steps=2))
     model, cfg, meta, state = load_teacher(run)
     assert state["step"] == 2 and meta["complete"] and cfg.hash.field.levels == 4
+    assert cfg.hash.proposal.stratified  # the default now; a run recorded before the key trained without it:
+    recorded = json.loads((run / "config.json").read_text())["train"]
+    del recorded["hash"]["proposal"]["stratified"]
+    assert not config_from_dict(recorded).hash.proposal.stratified
     with pytest.raises(RunFolderError, match="not a teacher run folder"):
         load_teacher(tmp_path)
     (tmp_path / "broken").mkdir()
