@@ -5,7 +5,8 @@ the trustworthy figure on a noisy machine):
   whole-batch layer sequence;
 * ``chunked``: the same samples and precision, MLPs in 4096-row chunks (fields/encoding.py: MLP);
 * ``now``: the cpu-small preset (chunked, bfloat16 MLPs where the CPU has them);
-* ``32+16``: ``now`` with 32 proposal + 16 final samples (twice the rate, but 5 dB lower held-out on bonsai);
+* ``32+16``: ``now`` with 32 proposal + 16 final samples (twice the rate, but 0.45 dB lower held-out on bonsai
+  at equal time);
 * ``grid``: the occupancy grid over contracted space instead of proposal sampling.
 
     python benchmarks/unbounded_speed.py --data outputs/real/bonsai_data --downscale 2 [--warmup 300] [--steps 30]

@@ -55,21 +55,18 @@ def test_proposal_spacing_is_linear_near_and_disparity_far():
     torch.testing.assert_close(steps, torch.full_like(steps, float(steps.mean())), rtol=1e-3, atol=1e-5)
 
 
-def test_proposal_resampling_is_stratified():
-    """Stratified draws put edge i of n at a cdf quantile in [i/n, (i+1)/n); evaluation draws are deterministic."""
-    from nerfbake.teacher.proposal import ProposalConfig, ProposalSampler
-
-    sampler = ProposalSampler(ProposalConfig(stratified=True), torch.zeros(3), torch.ones(3))
+def test_sample_pdf_stratified_draw():
+    """Stratified draws put edge i of n at a cdf quantile in [i/n, (i+1)/n); evaluation draws are deterministic.
+    The proposal sampler draws its final samples this way (``ProposalConfig.stratified``)."""
     s = uniform_t(torch.zeros(2000), torch.ones(2000), 4)
     w = torch.tensor([0.0, 1.0, 0.0, 0.0]).expand(2000, 4)
     noise = torch.rand(2000, 9, generator=torch.Generator().manual_seed(0))
-    edges = sampler._resample(s, w, 8, noise)
+    edges = sample_pdf(s, w, 9, u=noise, stratified=True)
     assert edges.shape == (2000, 9) and (edges.diff(dim=-1) >= 0).all()
     assert ((edges >= 0.25) & (edges <= 0.5)).float().mean() > 0.99  # all the mass is in the second interval
     quantile = (edges - 0.25) / 0.25  # the cdf at each edge
     k = torch.arange(9)
     assert ((quantile >= k / 9 - 1e-3) & (quantile <= (k + 1) / 9 + 1e-3)).all()
-    sorted_uniforms = ProposalSampler(ProposalConfig(stratified=False), torch.zeros(3), torch.ones(3))
-    iid_gaps = ((sorted_uniforms._resample(s, w, 8, noise) - 0.25) / 0.25).diff(dim=-1)
+    iid_gaps = ((sample_pdf(s, w, 9, u=noise) - 0.25) / 0.25).diff(dim=-1)
     assert float(quantile.diff(dim=-1).max()) < 2 / 9 + 1e-3 < float(iid_gaps.max())  # sorted uniforms: wide gaps
-    assert torch.equal(sampler._resample(s, w, 8, None), sampler._resample(s, w, 8, None))
+    assert torch.equal(sample_pdf(s, w, 9, deterministic=True, stratified=True), sample_pdf(s, w, 9, deterministic=True))

@@ -45,12 +45,14 @@ def sample_pdf(
     generator: torch.Generator | None = None,
     eps: float = 1e-5,
     u: torch.Tensor | None = None,
+    stratified: bool = False,
 ) -> torch.Tensor:
     """Draw ``num_samples`` sorted positions (..., num_samples) from the piecewise-constant pdf ``w`` on ``t``.
 
     Inverse transform sampling of the histogram (NeRF's hierarchical sampling). ``deterministic`` uses
     evenly spaced quantiles instead of random ones (for evaluation); ``u`` (..., num_samples) supplies the
-    random quantiles instead of ``generator``.
+    random quantiles instead of ``generator``. ``stratified`` puts random quantile i of n in [i/n, (i+1)/n)
+    (mip-NeRF 360's draw) instead of sorting independent ones, whose gaps vary widely.
     """
     w = w + eps
     pdf = w / w.sum(dim=-1, keepdim=True)
@@ -61,7 +63,10 @@ def sample_pdf(
     else:
         if u is None:
             u = torch.rand(shape, generator=generator, device=t.device, dtype=t.dtype)
-        u, _ = torch.sort(u, dim=-1)
+        if stratified:
+            u = (torch.arange(num_samples, device=u.device, dtype=u.dtype) + u) / num_samples
+        else:
+            u, _ = torch.sort(u, dim=-1)
     u = u.contiguous()
     idx = torch.searchsorted(cdf.contiguous(), u, right=True).clamp(1, cdf.shape[-1] - 1)
     below, above = idx - 1, idx

@@ -119,18 +119,10 @@ class ProposalSampler(nn.Module):
         pts = origins[:, None] + mid[..., None] * dirs[:, None]
         sigma = self.density(pts.reshape(-1, 3)).view(r, -1)
         w_p, _ = weights_from_density(sigma, t_p)
-        s_f = self._resample(s_p, w_p, cfg.final_samples, None if noise is None else noise[:, p:])
+        s_f = sample_pdf(s_p, w_p.detach(), cfg.final_samples + 1, deterministic=noise is None,
+                         u=None if noise is None else noise[:, p:], stratified=cfg.stratified)
+        s_f, _ = torch.sort(s_f.detach(), dim=-1)
         return s_f, s_to_t(s_f, near, cfg.far), (s_p, w_p)
-
-    def _resample(self, s, w, samples: int, noise):
-        """``samples`` intervals (their ``samples + 1`` sorted edges) drawn from the weights ``w`` on ``s``;
-        ``noise`` None: at even quantiles (evaluation)."""
-        w = w.detach()
-        if noise is not None and self.cfg.stratified:
-            n = noise.shape[-1]
-            noise = (torch.arange(n, device=noise.device, dtype=noise.dtype) + noise) / n
-        edges = sample_pdf(s, w, samples + 1, deterministic=noise is None, u=noise)
-        return torch.sort(edges.detach(), dim=-1)[0]
 
     def losses(self, s_final, w_final, proposal) -> dict[str, torch.Tensor]:
         s_p, w_p = proposal

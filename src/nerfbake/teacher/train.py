@@ -63,7 +63,9 @@ def scene_box(ds: Dataset) -> SceneBox:
 def config_from_dict(d: dict) -> TeacherTrainConfig:
     d = dict(d)
     h, n = d.pop("hash"), d.pop("nerf_sh")
-    prop = ProposalConfig(**{"stratified": False, **h.pop("proposal")}) if "proposal" in h else ProposalConfig()
+    if "proposal" in h:
+        h["proposal"].setdefault("stratified", False)  # runs made before the stratified draw
+    prop = ProposalConfig(**h.pop("proposal")) if "proposal" in h else ProposalConfig()
     h.setdefault("unbounded_sampler", "proposal")  # runs made before the contracted occupancy grid
     d.setdefault("appearance", "none")  # runs made before per-image appearance
     d.setdefault("normalize", "auto")  # runs made before --normalize
