@@ -330,3 +330,23 @@ def test_a_blender_scene_with_its_cameras_inside_its_box_is_contracted():
     assert indoor.contracted and indoor.box_min == aabb[0] and indoor.near == 0.05 and indoor.far > 1e9
     outdoor = scene_box(blender([[4.0, 0.0, 2.0], [0.0, 4.0, 2.0], [-4.0, 0.0, 2.0]]))
     assert not outdoor.contracted and outdoor.box_min == [-1.5] * 3 and outdoor.far == 5.0
+
+
+def test_paper_nerf_sh_density_survives_its_first_adam_steps(lego, tmp_path):
+    """Adam's first updates move every weight by the full learning rate in the sign of its gradient; at 5e-4 on the
+    8 x 256 paper field that pushed the density below zero everywhere within 3 to 5 steps (ReLU-dead: no gradient
+    ever again, the 12-14 dB background-only stall seen on an H100). The preset's schedule, run for its first steps
+    (stopped early, as Ctrl-C would), must leave both fields' densities able to learn: a gradient reaches the
+    density head from points across the box."""
+    from nerfbake.teacher.presets import preset
+
+    cfg = preset("nerf-sh", "paper")
+    cfg.batch_rays, cfg.downscale, cfg.val_every = 64, 8.0, 0
+    cfg.nerf_sh.coarse_samples, cfg.nerf_sh.fine_samples, cfg.nerf_sh.sparsity_points = 16, 16, 1024
+    run = train_teacher(lego, tmp_path / "paper", cfg, stop_at=12)
+    model = load_teacher(run)[0]
+    x = torch.rand(4096, 3, generator=torch.Generator().manual_seed(0)) * 2.4 - 1.2
+    for field in (model.coarse, model.fine):
+        field.zero_grad()
+        field(x)[0].sum().backward()
+        assert field.sigma_head.weight.grad.abs().max() > 1e-4

@@ -17,6 +17,9 @@ class NeRFSHConfig:
     width: int = 256
     skip: int = 4
     sh_degree: int = 3
+    # "relu" (PlenOctrees) or "softplus" (softplus(x - 1), mip-NeRF's: never without a gradient; the paper preset's
+    # choice, see teacher/presets.py). The tree stores activated densities, so either converts to the same format.
+    density_activation: str = "relu"
 
 
 class NeRFSHField(nn.Module):
@@ -24,6 +27,8 @@ class NeRFSHField(nn.Module):
 
     def __init__(self, cfg: NeRFSHConfig):
         super().__init__()
+        if cfg.density_activation not in ("relu", "softplus"):
+            raise ValueError(f"unknown density activation {cfg.density_activation!r}; choose relu or softplus")
         self.cfg = cfg
         self.encoding = PositionalEncoding(cfg.num_freqs)
         d_in = self.encoding.out_dim
@@ -61,7 +66,10 @@ class NeRFSHField(nn.Module):
             h = torch.relu(layer(h))
             if i + 1 == self.cfg.skip:
                 h = torch.cat([h, e], dim=-1)
-        return torch.relu(self.sigma_head(h)[:, 0]), self.sh_head(h)
+        raw = self.sigma_head(h)[:, 0]
+        if self.cfg.density_activation == "softplus":
+            return nn.functional.softplus(raw - 1.0), self.sh_head(h)
+        return torch.relu(raw), self.sh_head(h)
 
     def density(self, x: torch.Tensor) -> torch.Tensor:
         return self.forward(x)[0]

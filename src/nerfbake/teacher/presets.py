@@ -68,7 +68,13 @@ def preset(field_kind: str, name: str) -> TeacherTrainConfig:
                                       checkpoint_every=5000, val_every=10000,
                                       hash=HashTeacherConfig(HashSHConfig(levels=20, log2_table=22, max_res=8192, sh_degree=3),
                                                              grid_resolution=256, render_steps=1024))
+        # Density through softplus(x - 1), not PlenOctrees' ReLU: Adam's first updates move every weight by the full
+        # rate in the sign of its gradient, and at 8 x 256 that drove the ReLU density below zero everywhere within
+        # 3-5 steps, for good (the H100's 12.6-13.3 dB stall). lego_400 at 1/4 size, 256 rays of 32 + 64 samples,
+        # training PSNR at step 300: ReLU 13.2 (dead at step 5); ReLU + 500 warm-up steps 19.95; softplus 21.19;
+        # softplus + warm-up 19.84; the 4 x 128 cpu-small field 19.81 (benchmarks/nerf_sh_convergence.py).
         return TeacherTrainConfig(field="nerf-sh", preset=name, steps=2_000_000, batch_rays=1024, lr=5e-4, lr_final=5e-6,
                                   warmup_steps=0, weight_decay=0.0, checkpoint_every=10000, val_every=50000,
-                                  nerf_sh=NeRFSHTeacherConfig(NeRFSHConfig(), coarse_samples=64, fine_samples=128))
+                                  nerf_sh=NeRFSHTeacherConfig(NeRFSHConfig(density_activation="softplus"),
+                                                              coarse_samples=64, fine_samples=128))
     raise ValueError(f"unknown preset {name!r}; choose cpu-small or paper")
