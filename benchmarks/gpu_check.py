@@ -66,14 +66,10 @@ def last_json(text: str) -> dict | None:
 
 def psnr_curve(run: Path, points: int = 12) -> list[list[float]]:
     """[step, training PSNR, seconds since the first record] at about ``points`` evenly spaced records."""
-    recs = [json.loads(line) for line in (run / "metrics.jsonl").read_text().splitlines() if '"psnr"' in line]
-    recs = [r for r in recs if "psnr" in r and "step" in r]
-    if not recs:
-        return []
-    every = max(1, len(recs) // points)
-    keep = recs[::every] + ([recs[-1]] if (len(recs) - 1) % every else [])
-    t0 = recs[0]["time"]
-    return [[r["step"], round(r["psnr"], 2), round(r["time"] - t0, 1)] for r in keep]
+    from nerfbake.train.loop import training_curve
+
+    recs = training_curve(run, "psnr", points)
+    return [[r["step"], round(r["psnr"], 2), round(r["time"] - recs[0]["time"], 1)] for r in recs]
 
 
 def teacher_part(nb: list[str], data: Path, run: Path, log_dir: Path, budget_s: float, args: list[str],

@@ -21,7 +21,7 @@ from pathlib import Path
 from nerfbake.teacher.evaluate import evaluate_teacher
 from nerfbake.teacher.presets import preset
 from nerfbake.teacher.train import train_teacher
-from nerfbake.train.loop import git_revision
+from nerfbake.train.loop import git_revision, training_curve
 
 SHARED = Path(__file__).resolve().parents[2] / "shared" / "data"
 
@@ -38,9 +38,7 @@ def run_preset(name: str, data: str, out: Path, args) -> dict:
     train_teacher(data, out, cfg)
     seconds = time.perf_counter() - t
     ev = evaluate_teacher(out, "test", max_views=args.views, write_images=False)
-    recs = [json.loads(line) for line in (out / "metrics.jsonl").read_text().splitlines()]
-    every = 25 * max(1, round(args.steps / 250))  # the trainer logs every 25 steps
-    curve = [[r["step"], round(r["psnr"], 2)] for r in recs if "psnr" in r and r["step"] % every == 0]
+    curve = [[r["step"], round(r["psnr"], 2)] for r in training_curve(out, "psnr", points=10)]
     f = cfg.nerf_sh.field
     return {"architecture": f"{f.depth}x{f.width}, {f.num_freqs} freqs, skip {f.skip}, {f.density_activation}",
             "samples": [cfg.nerf_sh.coarse_samples, cfg.nerf_sh.fine_samples], "lr": cfg.lr,

@@ -3,13 +3,13 @@ time, memory, disk per method), with plots a reader would rather look at than re
 and against disk size, the same test view from every method beside the ground truth, and the training curves."""
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np
 
 from nerfbake import atomic
 from nerfbake.errors import RunFolderError
+from nerfbake.train.loop import training_curve
 
 MB = 1e6
 
@@ -96,11 +96,9 @@ def training_curves(run: Path, path: Path) -> bool:
     curves = []
     for label, log, key in (("teacher (train PSNR)", run / "teacher" / "metrics.jsonl", "psnr"),
                             ("SMERF student (PSNR vs teacher)", run / "smerf" / "student" / "metrics.jsonl", "psnr_vs_teacher")):
-        if log.is_file():
-            pts = [json.loads(line) for line in log.open() if line.strip()]
-            pts = [(p["step"], p[key]) for p in pts if key in p and "step" in p]
-            if pts:
-                curves.append((label, np.array(pts)))
+        pts = [(p["step"], p[key]) for p in training_curve(log.parent, key)]
+        if pts:
+            curves.append((label, np.array(pts)))
     if not curves:
         return False
     plt = _plt()

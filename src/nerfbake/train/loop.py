@@ -263,6 +263,18 @@ class RunLog:
             self.tb.close()
 
 
+def training_curve(run: Path, key: str, points: int | None = None) -> list[dict]:
+    """The records of a run's ``metrics.jsonl`` (written by :class:`RunLog`) that hold ``step`` and ``key``, in order;
+    with ``points``, about that many evenly spaced ones, the last always kept."""
+    path = Path(run) / "metrics.jsonl"
+    recs = [json.loads(line) for line in path.read_text().splitlines() if line.strip()] if path.is_file() else []
+    recs = [r for r in recs if key in r and "step" in r]
+    if points is None or not recs:
+        return recs
+    every = max(1, len(recs) // points)
+    return recs[::every] + ([recs[-1]] if (len(recs) - 1) % every else [])
+
+
 def finish_run(dp: "DataParallel", ckpt_path: Path, state_fn, config_path: Path, meta: dict, step: int, total: int) -> None:
     """End of a (possibly interrupted) run: the main rank saves the last checkpoint and records in the config
     whether the run is complete; every rank waits; an unfinished run says how to continue."""
