@@ -271,9 +271,16 @@ def cmd_octree_compress(args) -> int:
     band = {"band_bits": [int(b) for b in args.band_bits.split(",")]} if args.band_bits else {}
     check_output_file(args.out, args.overwrite)
     summary = compress_tree(args.tree, args.out, bits=args.bits, retain=args.retain, sigma_thresh=args.sigma_thresh,
-                            sh_degree=args.sh_degree, min_extent=args.min_extent, **band)
-    _print_json(summary) if args.json else print(
-        f"wrote {summary['tree']}: {summary['file_bytes'] / 1e6:.2f} MB ({summary['ratio']:.1f}x smaller)")
+                            sh_degree=args.sh_degree, min_extent=args.min_extent, data=args.data, target_db=args.target_db,
+                            downscale=args.downscale, normalize=args.normalize or "auto", views=args.views,
+                            codebook=args.codebook, **band)
+    if args.json:
+        _print_json(summary)
+        return 0
+    how = (f"measured loss {summary['measured_loss_db']:.2f} dB on {summary['measured_on']} (target {args.target_db})"
+           if summary["allocation"] == "measured" else summary["allocation"])
+    print(f"wrote {summary['tree']}: {summary['file_bytes'] / 1e6:.2f} MB ({summary['ratio']:.1f}x smaller); "
+          f"bits per basis {','.join(map(str, summary['band_bits']))}, sigma > {summary['sigma_thresh']:g}; {how}")
     return 0
 
 
@@ -553,8 +560,17 @@ def build_parser() -> argparse.ArgumentParser:
     oc.add_argument("--sigma-thresh", type=float, default=2.0, help="drop leaves with sigma at or below this")
     oc.add_argument("--min-extent", type=float, default=2.0 ** -9,
                     help="do not split codebook cells narrower than this (0 = the authors' always-split median cut)")
-    oc.add_argument("--band-bits", help="codebook bits per SH band, e.g. 16,8,6,4 (the default; capped by --bits; "
-                    "'16' = the authors' quantiser)")
+    oc.add_argument("--data", help="the scene the tree was built from: bits per SH band and the density threshold are "
+                    "then chosen by measured error on its training views (--target-db)")
+    oc.add_argument("--target-db", type=float, default=0.5,
+                    help="the most PSNR the compressed tree may lose against the uncompressed one (with --data)")
+    oc.add_argument("--views", type=int, default=4, help="training views the loss is measured on")
+    oc.add_argument("--downscale", type=float, default=1.0, help="image downscale for the measurement (the tree's)")
+    oc.add_argument("--normalize", **{**NORMALIZE_ARG, "default": None, "help": TREE_NORMALIZE_HELP})
+    oc.add_argument("--band-bits", help="fixed codebook bits per SH band instead, e.g. 16,8,6,4 (the choice without "
+                    "--data; capped by --bits; '16' with --codebook median --min-extent 0 = the authors' quantiser)")
+    oc.add_argument("--codebook", choices=["kmeans", "median"], default="kmeans",
+                    help="median cut refined by k-means (default) or median cut alone")
     oc.add_argument("--sh-degree", type=int, help="keep SH bands up to this degree (smaller files; default: all)")
     oc.add_argument("--json", action="store_true")
     oc.set_defaults(func=cmd_octree_compress)

@@ -187,7 +187,8 @@ def run_octree_compress(cfg: PipelineConfig, run: Path) -> dict:
     from nerfbake.octree.compress import compress_tree
 
     p = octree_paths(run)
-    return compress_tree(p["optimized"], p["compressed"]) or {}
+    return compress_tree(p["optimized"], p["compressed"], data=cfg.data, downscale=cfg.downscale or 1.0,
+                         normalize=teacher_normalize(run)) or {}
 
 
 def eval_octree(cfg: PipelineConfig, run: Path) -> dict:

@@ -13,12 +13,17 @@ residuals and lose little at 8/6/4 bits, while their indices then cost about a b
 """
 from __future__ import annotations
 
+import itertools
 import time
+import zlib
 from pathlib import Path
 
 import numpy as np
 
-from nerfbake.octree.io import env_map_arrays, half_precision, load_tree, write_npz
+from nerfbake.eval.metrics import psnr
+from nerfbake.octree.io import env_map_arrays, half_precision, load_tree, tree_from_arrays, write_npz
+from nerfbake.octree.render import RenderOptions, render_camera
+from nerfbake.octree.tree import Octree
 from nerfbake.progress import progress_bar
 
 
@@ -61,8 +66,36 @@ def median_cut(colors: np.ndarray, bits: int, min_extent: float = 0.0) -> tuple[
     return codebook.astype(np.float32), index
 
 
+def kmeans_refine(colors: np.ndarray, codebook: np.ndarray, index: np.ndarray, iters: int) -> tuple[np.ndarray, np.ndarray]:
+    """Lloyd iterations from a median-cut start: every colour moves to its nearest used entry, every entry to the
+    mean of its colours. Median cut gives each entry the same number of colours, spending entries on dense clumps
+    of near-identical residuals; k-means moves them to where the error is, and the uneven index histogram it leaves
+    lets DEFLATE shrink the map. Unused entries stay unused (0)."""
+    from scipy.spatial import cKDTree
+
+    x = colors.astype(np.float64)
+    book = codebook.astype(np.float64)
+    k = len(book)
+    for _ in range(iters):
+        used = np.nonzero(np.bincount(index, minlength=k))[0]
+        if used.size < 2:
+            break
+        index = used[cKDTree(book[used]).query(x, workers=-1)[1]]
+        counts = np.bincount(index, minlength=k)
+        nz = counts > 0
+        for c in range(3):
+            book[nz, c] = np.bincount(index, weights=x[:, c], minlength=k)[nz] / counts[nz]
+    return book.astype(np.float32), index
+
+
 MIN_EXTENT = 2.0 ** -9  # about float16's spacing at 1: finer splits would quantise rounding noise
-BAND_BITS = (16, 8, 6, 4)  # codebook bits for SH bands 0, 1, 2, 3 (and the last for any higher band)
+BAND_BITS = (16, 8, 6, 4)  # codebook bits for SH bands 0, 1, 2, 3 when there are no photos to measure the loss on
+BITS_LADDER = (16, 12, 10, 8, 7, 6, 5, 4, 3, 2)  # what --target-db tries for a band, one rung at a time
+SIGMA_LADDER = (2.0, 4.0)  # and then for the density below which leaves are dropped, times --sigma-thresh
+CODEBOOKS = ("kmeans", "median")
+KMEANS_ITERS = 4
+TARGET_DB = 0.5
+MEASURE_VIEWS = 4
 
 
 def basis_bits(num_basis: int, bits: int, band_bits) -> list[int]:
@@ -71,55 +104,229 @@ def basis_bits(num_basis: int, bits: int, band_bits) -> list[int]:
     return [min(bits, band_bits[min(int(j ** 0.5), len(band_bits) - 1)]) for j in range(num_basis)]
 
 
+def _deflated_bytes(a: np.ndarray) -> int:
+    """What DEFLATE (numpy's savez_compressed: zlib level 6) makes of ``a`` on its own."""
+    return len(zlib.compress(np.ascontiguousarray(a).tobytes(), 6))
+
+
+class Quantizer:
+    """The surviving leaves of one tree and the codebook and index map of each SH basis at each bit count, fitted
+    once and shared by every allocation ``--target-db`` tries and by the file finally written. Median cut splits
+    every cell in two per bit, so one ``bits``-deep cut holds every shallower one (index >> (bits - b)); k-means
+    (unless ``codebook='median'``) then refines each (basis, bits) it is asked for."""
+
+    def __init__(self, tree: Octree, nb: int, bits: int, sigma_thresh: float, min_extent: float, codebook: str):
+        if codebook not in CODEBOOKS:
+            raise ValueError(f"unknown codebook {codebook!r}; choose one of {', '.join(CODEBOOKS)}")
+        self.tree, self.nb, self.bits, self.codebook, self.min_extent = tree, nb, bits, codebook, min_extent
+        data = tree.data.cpu().numpy()
+        self.sigma = data[..., -1]
+        self.alive = (tree.child.cpu().numpy() == 0) & (self.sigma > sigma_thresh)
+        self.rgb = data[..., :-1].reshape(*self.sigma.shape, 3, tree.num_basis)[..., :nb]  # [..., channel, basis]
+        self.live = self.rgb[self.alive]  # (M, 3, B)
+        self._cuts: dict[int, np.ndarray] = {}
+        self._fits: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
+        self._sizes: dict[tuple[int, int, float], int] = {}
+
+    def fit(self, j: int, bits: int) -> tuple[np.ndarray, np.ndarray]:
+        """float16 codebook (2^bits, 3) and uint16 index per surviving leaf for basis ``j``."""
+        if (j, bits) not in self._fits:
+            colors = self.live[:, :, j]
+            if j not in self._cuts:
+                self._cuts[j] = median_cut(colors, self.bits, self.min_extent)[1]
+            idx = self._cuts[j] >> (self.bits - bits)
+            counts = np.bincount(idx, minlength=2 ** bits)
+            book = np.zeros((2 ** bits, 3))
+            nz = counts > 0
+            for c in range(3):
+                book[nz, c] = np.bincount(idx, weights=colors[:, c].astype(np.float64), minlength=2 ** bits)[nz] / counts[nz]
+            if self.codebook == "kmeans":
+                book, idx = kmeans_refine(colors, book, idx, KMEANS_ITERS)
+            self._fits[j, bits] = book.astype(np.float16), idx.astype(np.uint16)
+        return self._fits[j, bits]
+
+    def alive_above(self, sigma_thresh: float) -> np.ndarray:
+        return self.alive & (self.sigma > sigma_thresh)
+
+    def index_map(self, j: int, bits: int, alive: np.ndarray) -> np.ndarray:
+        """Basis ``j``'s uint16 map over every cell (0 where no surviving leaf), as ``quant_map[j]`` stores it."""
+        qmap = np.zeros(self.alive.shape, np.uint16)
+        qmap[self.alive] = self.fit(j, bits)[1]
+        qmap[~alive] = 0
+        return qmap
+
+    def arrays(self, per_basis: list[int], retain: int, sigma_thresh: float) -> dict[str, np.ndarray]:
+        """The compressed web layout's arrays for this allocation (what is written and what is measured)."""
+        n, nb, tree = self.tree.num_nodes, self.nb, self.tree
+        alive = self.alive_above(sigma_thresh)
+        quant_colors = np.zeros((nb - retain, 2 ** self.bits, 3), np.float16)
+        quant_map = np.zeros((nb - retain, n, 2, 2, 2), np.uint16)
+        for j in range(retain, nb):
+            book = self.fit(j, per_basis[j])[0]
+            quant_colors[j - retain, :len(book)] = book
+            quant_map[j - retain] = self.index_map(j, per_basis[j], alive)
+        arrays = {
+            "data_dim": np.array(3 * nb + 1, dtype=np.int64),
+            "child": tree.child.cpu().numpy().astype(np.int32),
+            "invradius3": tree.invradius.cpu().numpy().astype(np.float32),
+            "offset": tree.offset.cpu().numpy().astype(np.float32),
+            "data_format": np.array(f"SH{nb}"),
+            "quant_colors": quant_colors,
+            "quant_map": quant_map,
+            "sigma": half_precision(np.where(alive, self.sigma, 0), "densities"),
+            **env_map_arrays(tree),
+        }
+        if retain:
+            kept = np.where(alive[..., None, None], self.rgb[..., :retain], 0)  # (n,2,2,2,3,R)
+            arrays["data_retained"] = np.moveaxis(kept, -1, 0).astype(np.float16)  # (R,n,2,2,2,3)
+        return arrays
+
+    def basis_bytes(self, j: int, bits: int, sigma_thresh: float) -> int:
+        """DEFLATE size of basis ``j``'s index map and codebook: what an allocation changes, basis by basis."""
+        key = (j, bits, sigma_thresh)
+        if key not in self._sizes:
+            alive = self.alive_above(sigma_thresh)
+            self._sizes[key] = _deflated_bytes(self.index_map(j, bits, alive)) + _deflated_bytes(self.fit(j, bits)[0])
+        return self._sizes[key]
+
+    def estimated_bytes(self, per_basis: list[int], retain: int, sigma_thresh: float) -> int:
+        sigma = np.where(self.alive_above(sigma_thresh), self.sigma, 0).astype(np.float16)
+        return _deflated_bytes(sigma) + sum(self.basis_bytes(j, per_basis[j], sigma_thresh) for j in range(retain, self.nb))
+
+
+class ViewLoss:
+    """PSNR loss in dB of a candidate against the uncompressed tree, both scored against the photos of a few views
+    of ``split`` (training views when choosing: the held-out ones stay unseen), rendered as ``octree eval`` does."""
+
+    def __init__(self, tree: Octree, ds, views: int, split: str = "train"):
+        from nerfbake.eval.views import pick_views
+
+        self.opts = RenderOptions(background=tuple(ds.background or (1.0, 1.0, 1.0)))
+        picked = pick_views(ds.split(split), views)
+        self.frames = [ds.frames[i].camera for i in picked]
+        self.images = [ds.image(i)[..., :3] for i in picked]
+        if not self.frames:
+            raise ValueError(f"{ds.root}: no {split} views to measure the compression loss on")
+        self.device = tree.device
+        self.reference = self.psnr(tree)
+
+    def psnr(self, tree: Octree) -> float:
+        return float(np.mean([float(psnr(render_camera(tree, cam, self.opts)["rgb"], img)[0])
+                              for cam, img in zip(self.frames, self.images)]))
+
+    def __call__(self, arrays: dict[str, np.ndarray]) -> float:
+        return self.reference - self.psnr(tree_from_arrays("<candidate>", arrays).to(self.device))
+
+
+def choose_allocation(q: Quantizer, loss: ViewLoss, retain: int, sigma_thresh: float, target_db: float) -> dict:
+    """The smallest allocation of bits per SH band within ``target_db``. Each band is measured alone, one rung down
+    the ladder at a time with the others at full bits, until it alone breaks the target; small losses from
+    different bands add (their errors are independent), so the sum of each band's own loss predicts a combination's
+    and the smallest predicted-within-budget one is measured. If it overshoots, the budget shrinks by the overshoot
+    and the next is measured. Then the density threshold is raised while the loss allows."""
+    nb, bits = q.nb, q.bits
+    bands = int(round(nb ** 0.5))
+    quantised = [band for band in range(bands) if (band + 1) ** 2 > retain]  # a band wholly retained has no codebook
+    rungs = [bits] + [b for b in BITS_LADDER if b < bits]
+    per_basis = lambda bb: basis_bits(nb, bits, bb)  # noqa: E731
+    tried = []
+
+    def measure(band_bits: list[int], thresh: float) -> float:
+        value = loss(q.arrays(per_basis(band_bits), retain, thresh))
+        tried.append({"band_bits": list(band_bits), "sigma_thresh": thresh, "loss_db": value,
+                      "bytes_est": q.estimated_bytes(per_basis(band_bits), retain, thresh)})
+        advance()
+        return value
+
+    def band_bytes(band: int, b: int) -> int:
+        return sum(q.basis_bytes(j, b, sigma_thresh) for j in range(max(band * band, retain), (band + 1) ** 2))
+
+    top = [bits] * bands
+    attempts = 3
+    with progress_bar("octree compress: measuring allocations", 1 + len(quantised) * (len(rungs) - 1) + attempts
+                      + len(SIGMA_LADDER), unit="try") as advance:
+        base = measure(top, sigma_thresh)
+        excess = {band: {bits: 0.0} for band in range(bands)}
+        for band in quantised:
+            for b in rungs[1:]:
+                trial = top.copy()
+                trial[band] = b
+                value = measure(trial, sigma_thresh)
+                if value > target_db:
+                    break  # lower rungs lose more still
+                excess[band][b] = max(value - base, 0.0)
+        options = [sorted(excess[band].items(), key=lambda kv: -kv[0]) for band in range(bands)]
+        band_bits, current, budget = top, base, target_db
+        for _ in range(attempts):
+            best = None
+            for combo in itertools.product(*options):
+                if base + sum(e for _, e in combo) > budget:
+                    continue
+                size = sum(band_bytes(band, b) for band, (b, _) in enumerate(combo))
+                if best is None or size < best[0]:
+                    best = (size, [b for b, _ in combo])
+            if best is None or best[1] == top:
+                break
+            value = measure(best[1], sigma_thresh)
+            if value <= target_db:
+                band_bits, current = best[1], value
+                break
+            budget -= value - target_db + 0.02
+        size = q.estimated_bytes(per_basis(band_bits), retain, sigma_thresh)
+        for thresh in [m * sigma_thresh for m in SIGMA_LADDER]:
+            value = measure(band_bits, thresh)
+            trial_size = tried[-1]["bytes_est"]
+            if value > target_db or trial_size >= size:
+                break
+            sigma_thresh, current, size = thresh, value, trial_size
+    return {"band_bits": band_bits, "sigma_thresh": sigma_thresh, "measured_loss_db": current,
+            "measured_on": f"{len(loss.frames)} training views", "target_db": target_db,
+            "target_met": current <= target_db, "tried": tried}
+
+
 def compress_tree(tree_path: str | Path, out: str | Path, bits: int = 16, retain: int = 0, sigma_thresh: float = 2.0,
-                  sh_degree: int | None = None, min_extent: float = MIN_EXTENT, band_bits=BAND_BITS) -> dict:
-    """``sh_degree`` below the tree's drops the higher SH bands first (not in the authors' script: the volrend
-    author's advice for trees too large for WebGL is SH9). ``band_bits=(bits,)`` is the authors' quantiser."""
+                  sh_degree: int | None = None, min_extent: float = MIN_EXTENT, band_bits=None,
+                  data: str | Path | None = None, target_db: float = TARGET_DB, downscale: float = 1.0,
+                  normalize: str = "auto", views: int = MEASURE_VIEWS, codebook: str = "kmeans") -> dict:
+    """Without ``band_bits`` and with the training photos (``data``), the bits per SH band and the density threshold
+    are chosen by measured error: the smallest file whose PSNR on ``views`` training views is within ``target_db``
+    of the uncompressed tree's. ``band_bits`` fixes them (``(bits,)`` with ``codebook='median'`` is the authors'
+    quantiser); without ``data`` they fall back to :data:`BAND_BITS`. ``sh_degree`` below the tree's drops the
+    higher SH bands first (the volrend author's advice for trees too large for WebGL is SH9)."""
     start = time.time()
     if not 1 <= bits <= 16:
         raise ValueError(f"--bits must be in 1..16 (uint16 indices), got {bits}; volrend needs 16")
     if band_bits is not None and not all(1 <= b <= 16 for b in band_bits):
         raise ValueError(f"--band-bits must be in 1..16, got {list(band_bits)}")
+    if not target_db > 0:
+        raise ValueError(f"--target-db must be positive, got {target_db}")
     tree = load_tree(tree_path)
-    n = tree.num_nodes
     if sh_degree is not None and not 0 <= sh_degree <= tree.sh_degree:
         raise ValueError(f"--sh-degree {sh_degree} is outside 0..{tree.sh_degree} (the degree this tree holds)")
     nb = tree.num_basis if sh_degree is None else (sh_degree + 1) ** 2
     if not 0 <= retain <= nb:
         raise ValueError(f"--retain {retain} is outside 0..{nb} (the tree has {nb} SH bases)")
-    data = tree.data.numpy()
-    sigma = data[..., -1]
-    alive = (tree.child.numpy() == 0) & (sigma > sigma_thresh)
-    if not alive.any():
+    q = Quantizer(tree, nb, bits, sigma_thresh, min_extent, codebook)
+    if not q.alive.any():
         raise ValueError(f"{tree_path}: no leaf has sigma > {sigma_thresh}; lower --sigma-thresh")
-    rgb = data[..., :-1].reshape(n, 2, 2, 2, 3, tree.num_basis)[..., :nb]  # [..., channel, basis]
-    live = rgb[alive]  # (M, 3, B)
-    quant_colors = np.zeros((nb - retain, 2 ** bits, 3), np.float16)
-    quant_map = np.zeros((nb - retain, n, 2, 2, 2), np.uint16)
+    if band_bits is None and data is not None:
+        from nerfbake.data.formats import load_dataset
+
+        loss = ViewLoss(tree, load_dataset(data, downscale=downscale, normalize=normalize), views)
+        choice = choose_allocation(q, loss, retain, sigma_thresh, target_db)
+        band_bits, sigma_thresh = choice["band_bits"], choice["sigma_thresh"]
+        choice["allocation"] = "measured"
+    else:
+        choice = {"allocation": "fixed" if band_bits is not None else "fixed (no --data to measure on)"}
+        band_bits = BAND_BITS if band_bits is None else band_bits
     per_basis = basis_bits(nb, bits, band_bits)
     with progress_bar("octree compress", nb - retain, unit="basis") as advance:
         for j in range(retain, nb):
-            book, idx = median_cut(live[:, :, j], per_basis[j], min_extent)
-            quant_colors[j - retain, :len(book)] = book.astype(np.float16)
-            quant_map[j - retain][alive] = idx.astype(np.uint16)
+            q.fit(j, per_basis[j])
             advance()
-    arrays = {
-        "data_dim": np.array(3 * nb + 1, dtype=np.int64),
-        "child": tree.child.numpy().astype(np.int32),
-        "invradius3": tree.invradius.numpy().astype(np.float32),
-        "offset": tree.offset.numpy().astype(np.float32),
-        "data_format": np.array(f"SH{nb}"),
-        "quant_colors": quant_colors,
-        "quant_map": quant_map,
-        "sigma": half_precision(np.where(alive, sigma, 0), "densities"),
-        **env_map_arrays(tree),
-    }
-    if retain:
-        kept = np.where(alive[..., None, None], rgb[..., :retain], 0)  # (n,2,2,2,3,R)
-        arrays["data_retained"] = np.moveaxis(kept, -1, 0).astype(np.float16)  # (R,n,2,2,2,3)
-    path = write_npz(out, arrays, compress=True)
+    path = write_npz(out, q.arrays(per_basis, retain, sigma_thresh), compress=True)
     raw = Path(tree_path).stat().st_size
     return {"tree": str(path), "source": str(tree_path), "file_bytes": path.stat().st_size, "source_bytes": raw,
             "ratio": raw / path.stat().st_size, "bits": bits, "band_bits": per_basis[retain:], "retain": retain,
-            "sigma_thresh": sigma_thresh, "data_format": f"SH{nb}", "min_extent": min_extent,
-            "leaves_kept": int(alive.sum()), "seconds": time.time() - start}
+            "sigma_thresh": sigma_thresh, "data_format": f"SH{nb}", "min_extent": min_extent, "codebook": codebook,
+            "leaves_kept": int(q.alive_above(sigma_thresh).sum()), "seconds": time.time() - start, **choice}

@@ -118,7 +118,12 @@ def load_tree(path: str | Path, device="cpu") -> Octree:
 
 
 def _load_tree(path: Path, device) -> Octree:
-    z = _open(path)
+    return tree_from_arrays(path, _open(path), device)
+
+
+def tree_from_arrays(path, z: dict[str, np.ndarray], device="cpu") -> Octree:
+    """The tree a file's arrays ``z`` describe (raw or compressed layout), checked; ``path`` names it in errors.
+    Compression measures its candidates through this too, so what it measures is what a reader of the file gets."""
     child = _want(path, z, "child", "iu", 4)
     if child.dtype != np.int32:
         raise _fail(path, f"'child' is {child.dtype}; svox and volrend store relative pointers as int32")

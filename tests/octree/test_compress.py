@@ -1,0 +1,64 @@
+"""Compression by measured error (``octree compress --data D --target-db``) and k-means codebooks."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from nerfbake.cli import main
+from nerfbake.data.formats import load_dataset
+from nerfbake.octree.compress import ViewLoss, compress_tree, kmeans_refine, median_cut
+from nerfbake.octree.io import load_tree, volrend_problems
+
+
+def test_kmeans_refinement_lowers_the_error_of_median_cut_at_the_same_size():
+    rng = np.random.default_rng(1)
+    # view-dependent residuals: a dense clump near zero plus a sparse spread of large values
+    x = np.concatenate([rng.normal(0, 0.01, (20000, 3)), rng.normal(0, 0.5, (2000, 3))]).astype(np.float32)
+    book, idx = median_cut(x, 6)
+    err_mc = np.mean((book[idx] - x) ** 2)
+    kbook, kidx = kmeans_refine(x, book, idx, 4)
+    err_km = np.mean((kbook[kidx] - x) ** 2)
+    assert err_km < 0.7 * err_mc
+    for k in np.unique(kidx):  # every used entry is the mean of its members
+        assert np.allclose(kbook[k], x[kidx == k].mean(0), atol=1e-5)
+    assert set(np.unique(kidx)) <= set(np.unique(idx))  # unused entries stay unused: indices stay within the budget
+
+
+def test_a_deep_median_cut_holds_every_shallower_one():
+    """The search reads a b-bit cut off one 16-bit cut (index >> (16 - b)); that is only right if median cut
+    splits each cell into cells 2k and 2k + 1, also where --min-extent stops a split."""
+    x = np.random.default_rng(2).normal(size=(3000, 3)).astype(np.float32)
+    x[:500] *= 1e-4
+    for extent in (0.0, 1e-2):
+        deep = median_cut(x, 12, extent)[1]
+        for b in (1, 4, 7):
+            assert np.array_equal(median_cut(x, b, extent)[1], deep >> (12 - b))
+
+
+def test_measured_allocation_keeps_its_target_and_is_what_the_file_holds(tiny_tree, tiny_scene, tmp_path, capsys):
+    loose = compress_tree(tiny_tree, tmp_path / "loose.npz", data=tiny_scene, target_db=0.5, views=2, sigma_thresh=0.1)
+    assert loose["allocation"] == "measured" and loose["target_met"] and loose["measured_loss_db"] <= 0.5
+    assert volrend_problems(tmp_path / "loose.npz") == []
+    # the loss measured while choosing is the loss of the file a reader loads
+    ds = load_dataset(tiny_scene)
+    raw = load_tree(tiny_tree)
+    loss = ViewLoss(raw, ds, 2)
+    assert loss.reference - loss.psnr(load_tree(tmp_path / "loose.npz")) == pytest.approx(loose["measured_loss_db"], abs=1e-4)
+    # the search went below 16 bits somewhere, and tried at least one rung that broke the target or hit the ladder's end
+    assert min(loose["band_bits"]) < 16
+    assert any(t["loss_db"] > 0.5 for t in loose["tried"]) or min(loose["band_bits"]) == 2
+    full = compress_tree(tiny_tree, tmp_path / "full.npz", band_bits=(16,), sigma_thresh=0.1)
+    assert loose["file_bytes"] < full["file_bytes"]
+    tight = compress_tree(tiny_tree, tmp_path / "tight.npz", data=tiny_scene, target_db=0.02, views=2, sigma_thresh=0.1)
+    assert tight["measured_loss_db"] <= max(0.02, tight["tried"][0]["loss_db"])
+    assert tight["file_bytes"] >= loose["file_bytes"] * 0.98  # a tighter target never buys a (much) smaller file
+
+    # the CLI prints the choice and keeps it in --json
+    assert main(["octree", "compress", "--tree", str(tiny_tree), "--out", str(tmp_path / "cli.npz"), "--data",
+                 str(tiny_scene), "--views", "2", "--sigma-thresh", "0.1", "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["allocation"] == "measured" and out["target_db"] == 0.5 and "measured_loss_db" in out
+    assert main(["octree", "compress", "--tree", str(tiny_tree), "--out", str(tmp_path / "fixed.npz"), "--sigma-thresh", "0.1"]) == 0
+    assert "no --data" in capsys.readouterr().out
