@@ -33,14 +33,14 @@ def main() -> None:
     ap.add_argument("--target-db", type=float, default=TARGET_DB)
     ap.add_argument("--fixed", default="16;16,8,6,4;16,10,8,6", help="fixed band allocations, ';'-separated")
     ap.add_argument("--codebooks", default="kmeans,median")
+    ap.add_argument("--sigma-thresh", type=float, default=2.0)
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     ds = load_dataset(args.data, downscale=args.downscale, normalize=args.normalize)
     held_out = ViewLoss(load_tree(args.tree), ds, args.eval_views, split="test")
     raw_bytes = Path(args.tree).stat().st_size
-    common = dict(downscale=args.downscale, normalize=args.normalize)
-    rows = [("default", dict(data=args.data, target_db=args.target_db, **common))]
+    rows = [("default", dict(data=args.data, target_db=args.target_db, downscale=args.downscale, normalize=args.normalize))]
     for fixed in filter(None, args.fixed.split(";")):
         for cb in args.codebooks.split(","):
             rows.append((f"{fixed} {cb}", dict(band_bits=tuple(int(b) for b in fixed.split(",")), codebook=cb)))
@@ -49,7 +49,7 @@ def main() -> None:
     for name, kw in rows:
         path = out / (name.replace(" ", "_").replace(",", "-") + ".npz")
         start = time.time()
-        s = compress_tree(args.tree, path, **kw)
+        s = compress_tree(args.tree, path, sigma_thresh=args.sigma_thresh, **kw)
         results.append({
             "name": name, "band_bits": s["band_bits"], "sigma_thresh": s["sigma_thresh"], "codebook": s["codebook"],
             "file_bytes": s["file_bytes"], "ratio": raw_bytes / s["file_bytes"],

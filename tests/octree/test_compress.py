@@ -62,3 +62,22 @@ def test_measured_allocation_keeps_its_target_and_is_what_the_file_holds(tiny_tr
     assert out["allocation"] == "measured" and out["target_db"] == 0.5 and "measured_loss_db" in out
     assert main(["octree", "compress", "--tree", str(tiny_tree), "--out", str(tmp_path / "fixed.npz"), "--sigma-thresh", "0.1"]) == 0
     assert "no --data" in capsys.readouterr().out
+
+
+def test_compression_benchmark_prints_every_row(tiny_tree, tiny_scene, tmp_path):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[2]
+    res = subprocess.run([sys.executable, str(root / "benchmarks" / "octree_compress.py"), "--tree", str(tiny_tree),
+                          "--data", str(tiny_scene), "--out", str(tmp_path / "c"), "--eval-views", "2",
+                          "--fixed", "16,8,6,4", "--codebooks", "median", "--sigma-thresh", "0.1"],
+                         capture_output=True, text=True, timeout=600)
+    assert res.returncode == 0, res.stderr[-2000:]
+    out = json.loads(res.stdout)
+    assert [r["name"] for r in out["results"]] == ["default", "16,8,6,4 median", "authors"]
+    for r in out["results"]:
+        assert r["volrend_ok"] and r["ratio"] > 1 and np.isfinite(r["test_loss_db"])
+    assert out["results"][0]["train_loss_db"] <= out["target_db"]
+    assert out["results"][2]["band_bits"] == [16] * 9
