@@ -1,15 +1,21 @@
-"""``nerfbake octree compress``: the authors' web compression (``octree/compression.py``, svox's quantizer).
+"""``nerfbake octree compress``: the authors' web compression (``octree/compression.py``, svox's quantizer), with
+the bits per SH band chosen by measured error.
 
-Leaves with sigma <= ``sigma_thresh`` are dropped (sigma 0, index 0). For every SH basis from ``retain`` on,
-the RGB triples of the surviving leaves are median-cut quantised into a 2^bits float16 codebook with uint16
-indices; the first ``retain`` bases are kept as float16. Arrays are DEFLATE-compressed. volrend hard-codes a
+The layout is the authors': leaves with sigma <= ``sigma_thresh`` are dropped (sigma 0, index 0); for every SH
+basis from ``retain`` on, the RGB triples of the surviving leaves are quantised into a 2^bits float16 codebook with
+uint16 indices; the first ``retain`` bases are kept as float16; arrays are DEFLATE-compressed. volrend hard-codes a
 65 536-entry codebook stride, so ``bits`` must stay 16 for files meant for it.
 
-Unlike the authors' script, the higher SH bands get fewer codebook entries (``band_bits``; the rest of each
-65 536-entry codebook is zero, so the file stays volrend's). Median cut gives every entry the same number of
-leaves, so a 16-bit index costs about 16 bits even after DEFLATE; bands 1-3 only carry small view-dependent
-residuals and lose little at 8/6/4 bits, while their indices then cost about a byte or less. On lego_400
-(256^3, SH16) this is 10.5x smaller than the raw tree at -0.30 dB; all bands at 16 bits is 4.3x at -0.0 dB.
+Three departures, each keeping the file volrend's:
+
+* Higher SH bands may use fewer of the 65 536 entries (the rest stay zero). Median cut gives every entry the same
+  number of leaves, so a 16-bit index costs about 16 bits even after DEFLATE; the small view-dependent bands of a
+  matte scene lose little at 8/6/4 bits, whose indices cost a byte or less.
+* How few is measured, not assumed (``--target-db``): a glossy scene keeps its look in exactly the bands a fixed
+  allocation squeezes hardest. The candidates are rendered from a few training views with the same reader a file
+  goes through, and the smallest within the target is written (:func:`choose_allocation`).
+* Median cut is refined by a few k-means steps (:func:`kmeans_refine`): lower error at the same entry count, and
+  an uneven index histogram that DEFLATE shrinks.
 """
 from __future__ import annotations
 
@@ -113,7 +119,7 @@ class Quantizer:
     """The surviving leaves of one tree and the codebook and index map of each SH basis at each bit count, fitted
     once and shared by every allocation ``--target-db`` tries and by the file finally written. Median cut splits
     every cell in two per bit, so one ``bits``-deep cut holds every shallower one (index >> (bits - b)); k-means
-    (unless ``codebook='median'``) then refines each (basis, bits) it is asked for."""
+    refines a (basis, bits) when ``codebook`` is ``'kmeans'`` (the search sets it to ``'median'``: cheap fits)."""
 
     def __init__(self, tree: Octree, nb: int, bits: int, sigma_thresh: float, min_extent: float, codebook: str):
         if codebook not in CODEBOOKS:
@@ -125,12 +131,15 @@ class Quantizer:
         self.rgb = data[..., :-1].reshape(*self.sigma.shape, 3, tree.num_basis)[..., :nb]  # [..., channel, basis]
         self.live = self.rgb[self.alive]  # (M, 3, B)
         self._cuts: dict[int, np.ndarray] = {}
-        self._fits: dict[tuple[int, int], tuple[np.ndarray, np.ndarray]] = {}
-        self._sizes: dict[tuple[int, int, float], int] = {}
+        self._fits: dict[tuple[str, int, int], tuple[np.ndarray, np.ndarray]] = {}
+        self._sizes: dict[tuple[str, int, int], int] = {}
+        self._decoded: Octree | None = None
+        self._decoded_state: dict = {}
 
     def fit(self, j: int, bits: int) -> tuple[np.ndarray, np.ndarray]:
         """float16 codebook (2^bits, 3) and uint16 index per surviving leaf for basis ``j``."""
-        if (j, bits) not in self._fits:
+        key = (self.codebook, j, bits)
+        if key not in self._fits:
             colors = self.live[:, :, j]
             if j not in self._cuts:
                 self._cuts[j] = median_cut(colors, self.bits, self.min_extent)[1]
@@ -142,8 +151,8 @@ class Quantizer:
                 book[nz, c] = np.bincount(idx, weights=colors[:, c].astype(np.float64), minlength=2 ** bits)[nz] / counts[nz]
             if self.codebook == "kmeans":
                 book, idx = kmeans_refine(colors, book, idx, KMEANS_ITERS)
-            self._fits[j, bits] = book.astype(np.float16), idx.astype(np.uint16)
-        return self._fits[j, bits]
+            self._fits[key] = book.astype(np.float16), idx.astype(np.uint16)
+        return self._fits[key]
 
     def alive_above(self, sigma_thresh: float) -> np.ndarray:
         return self.alive & (self.sigma > sigma_thresh)
@@ -156,7 +165,7 @@ class Quantizer:
         return qmap
 
     def arrays(self, per_basis: list[int], retain: int, sigma_thresh: float) -> dict[str, np.ndarray]:
-        """The compressed web layout's arrays for this allocation (what is written and what is measured)."""
+        """The compressed web layout's arrays for this allocation: what is written."""
         n, nb, tree = self.tree.num_nodes, self.nb, self.tree
         alive = self.alive_above(sigma_thresh)
         quant_colors = np.zeros((nb - retain, 2 ** self.bits, 3), np.float16)
@@ -181,17 +190,42 @@ class Quantizer:
             arrays["data_retained"] = np.moveaxis(kept, -1, 0).astype(np.float16)  # (R,n,2,2,2,3)
         return arrays
 
-    def basis_bytes(self, j: int, bits: int, sigma_thresh: float) -> int:
-        """DEFLATE size of basis ``j``'s index map and codebook: what an allocation changes, basis by basis."""
-        key = (j, bits, sigma_thresh)
+    def decoded(self, per_basis: list[int], retain: int, sigma_thresh: float) -> Octree:
+        """The tree a reader of :meth:`arrays` gets, without writing or decoding the whole file per candidate: the
+        first call goes through the reader (``tree_from_arrays``), later ones re-decode only the bases whose codebook
+        changed, as the reader would (``quant_colors[j][quant_map[j]]``), and the densities if the threshold did."""
+        state = {"retain": retain, "sigma": sigma_thresh,
+                 **{j: (self.codebook, per_basis[j]) for j in range(retain, self.nb)}}
+        if self._decoded is None or self._decoded_state["retain"] != retain:
+            self._decoded = tree_from_arrays("<candidate>", self.arrays(per_basis, retain, sigma_thresh))
+            self._decoded_state = state
+            return self._decoded
+        data = self._decoded.data.numpy()
+        alive = self.alive_above(sigma_thresh)
+        threshold_changed = self._decoded_state["sigma"] != sigma_thresh
+        if threshold_changed:
+            data[..., -1] = half_precision(np.where(alive, self.sigma, 0), "densities").astype(np.float32)
+            for j in range(retain):
+                kept = np.where(alive[..., None], self.rgb[..., j], 0).astype(np.float16)
+                data[..., j::self.nb][..., :3] = kept.astype(np.float32)
+        for j in range(retain, self.nb):
+            if threshold_changed or self._decoded_state[j] != state[j]:
+                book = self.fit(j, per_basis[j])[0].astype(np.float32)
+                data[..., j::self.nb][..., :3] = book[self.index_map(j, per_basis[j], alive)]
+        self._decoded_state = state
+        return self._decoded
+
+    def basis_bytes(self, j: int, bits: int) -> int:
+        """DEFLATE size of basis ``j``'s surviving indices and codebook: what an allocation changes, basis by basis
+        (the dropped cells' zeros between them cost next to nothing)."""
+        key = (self.codebook, j, bits)
         if key not in self._sizes:
-            alive = self.alive_above(sigma_thresh)
-            self._sizes[key] = _deflated_bytes(self.index_map(j, bits, alive)) + _deflated_bytes(self.fit(j, bits)[0])
+            book, idx = self.fit(j, bits)
+            self._sizes[key] = _deflated_bytes(idx) + _deflated_bytes(book)
         return self._sizes[key]
 
-    def estimated_bytes(self, per_basis: list[int], retain: int, sigma_thresh: float) -> int:
-        sigma = np.where(self.alive_above(sigma_thresh), self.sigma, 0).astype(np.float16)
-        return _deflated_bytes(sigma) + sum(self.basis_bytes(j, per_basis[j], sigma_thresh) for j in range(retain, self.nb))
+    def estimated_bytes(self, per_basis: list[int], retain: int) -> int:
+        return sum(self.basis_bytes(j, per_basis[j]) for j in range(retain, self.nb))
 
 
 class ViewLoss:
@@ -207,43 +241,45 @@ class ViewLoss:
         self.images = [ds.image(i)[..., :3] for i in picked]
         if not self.frames:
             raise ValueError(f"{ds.root}: no {split} views to measure the compression loss on")
-        self.device = tree.device
         self.reference = self.psnr(tree)
 
     def psnr(self, tree: Octree) -> float:
         return float(np.mean([float(psnr(render_camera(tree, cam, self.opts)["rgb"], img)[0])
                               for cam, img in zip(self.frames, self.images)]))
 
-    def __call__(self, arrays: dict[str, np.ndarray]) -> float:
-        return self.reference - self.psnr(tree_from_arrays("<candidate>", arrays).to(self.device))
+    def __call__(self, tree: Octree) -> float:
+        return self.reference - self.psnr(tree)
 
 
 def choose_allocation(q: Quantizer, loss: ViewLoss, retain: int, sigma_thresh: float, target_db: float) -> dict:
-    """The smallest allocation of bits per SH band within ``target_db``. Each band is measured alone, one rung down
-    the ladder at a time with the others at full bits, until it alone breaks the target; small losses from
-    different bands add (their errors are independent), so the sum of each band's own loss predicts a combination's
-    and the smallest predicted-within-budget one is measured. If it overshoots, the budget shrinks by the overshoot
-    and the next is measured. Then the density threshold is raised while the loss allows."""
+    """The smallest allocation of bits per SH band within ``target_db``. The search runs on median-cut codebooks
+    (cheap: one deep cut per basis serves every rung). Each band is measured alone, one rung down the ladder at a
+    time with the others at full bits, until it alone breaks the target; small losses from different bands add
+    (their errors are independent), so the sum of each band's own loss predicts a combination's, and the smallest
+    combination predicted within budget is measured; if it overshoots, the budget shrinks by the overshoot and the
+    next is measured. Then the density threshold is raised while the loss allows, and last the chosen allocation is
+    refitted with k-means (when asked) and kept if it still meets the target (it usually loses less)."""
     nb, bits = q.nb, q.bits
     bands = int(round(nb ** 0.5))
     quantised = [band for band in range(bands) if (band + 1) ** 2 > retain]  # a band wholly retained has no codebook
     rungs = [bits] + [b for b in BITS_LADDER if b < bits]
     per_basis = lambda bb: basis_bits(nb, bits, bb)  # noqa: E731
+    final_codebook, q.codebook = q.codebook, "median"
     tried = []
 
     def measure(band_bits: list[int], thresh: float) -> float:
-        value = loss(q.arrays(per_basis(band_bits), retain, thresh))
-        tried.append({"band_bits": list(band_bits), "sigma_thresh": thresh, "loss_db": value,
-                      "bytes_est": q.estimated_bytes(per_basis(band_bits), retain, thresh)})
+        value = loss(q.decoded(per_basis(band_bits), retain, thresh))
+        tried.append({"band_bits": list(band_bits), "sigma_thresh": thresh, "codebook": q.codebook, "loss_db": value,
+                      "bytes_est": q.estimated_bytes(per_basis(band_bits), retain)})
         advance()
         return value
 
     def band_bytes(band: int, b: int) -> int:
-        return sum(q.basis_bytes(j, b, sigma_thresh) for j in range(max(band * band, retain), (band + 1) ** 2))
+        return sum(q.basis_bytes(j, b) for j in range(max(band * band, retain), (band + 1) ** 2))
 
     top = [bits] * bands
     attempts = 3
-    with progress_bar("octree compress: measuring allocations", 1 + len(quantised) * (len(rungs) - 1) + attempts
+    with progress_bar("octree compress: measuring allocations", 2 + len(quantised) * (len(rungs) - 1) + attempts
                       + len(SIGMA_LADDER), unit="try") as advance:
         base = measure(top, sigma_thresh)
         excess = {band: {bits: 0.0} for band in range(bands)}
@@ -272,14 +308,19 @@ def choose_allocation(q: Quantizer, loss: ViewLoss, retain: int, sigma_thresh: f
                 band_bits, current = best[1], value
                 break
             budget -= value - target_db + 0.02
-        size = q.estimated_bytes(per_basis(band_bits), retain, sigma_thresh)
         for thresh in [m * sigma_thresh for m in SIGMA_LADDER]:
             value = measure(band_bits, thresh)
-            trial_size = tried[-1]["bytes_est"]
-            if value > target_db or trial_size >= size:
+            if value > target_db:
                 break
-            sigma_thresh, current, size = thresh, value, trial_size
-    return {"band_bits": band_bits, "sigma_thresh": sigma_thresh, "measured_loss_db": current,
+            sigma_thresh, current = thresh, value
+        if final_codebook != q.codebook:
+            q.codebook = final_codebook
+            value = measure(band_bits, sigma_thresh)
+            if value <= max(target_db, current):
+                current = value
+            else:
+                q.codebook = "median"
+    return {"bits_per_band": band_bits, "sigma_thresh": sigma_thresh, "measured_loss_db": current,
             "measured_on": f"{len(loss.frames)} training views", "target_db": target_db,
             "target_met": current <= target_db, "tried": tried}
 
@@ -314,7 +355,7 @@ def compress_tree(tree_path: str | Path, out: str | Path, bits: int = 16, retain
 
         loss = ViewLoss(tree, load_dataset(data, downscale=downscale, normalize=normalize), views)
         choice = choose_allocation(q, loss, retain, sigma_thresh, target_db)
-        band_bits, sigma_thresh = choice["band_bits"], choice["sigma_thresh"]
+        band_bits, sigma_thresh = choice["bits_per_band"], choice["sigma_thresh"]
         choice["allocation"] = "measured"
     else:
         choice = {"allocation": "fixed" if band_bits is not None else "fixed (no --data to measure on)"}
@@ -328,5 +369,5 @@ def compress_tree(tree_path: str | Path, out: str | Path, bits: int = 16, retain
     raw = Path(tree_path).stat().st_size
     return {"tree": str(path), "source": str(tree_path), "file_bytes": path.stat().st_size, "source_bytes": raw,
             "ratio": raw / path.stat().st_size, "bits": bits, "band_bits": per_basis[retain:], "retain": retain,
-            "sigma_thresh": sigma_thresh, "data_format": f"SH{nb}", "min_extent": min_extent, "codebook": codebook,
+            "sigma_thresh": sigma_thresh, "data_format": f"SH{nb}", "min_extent": min_extent, "codebook": q.codebook,
             "leaves_kept": int(q.alive_above(sigma_thresh).sum()), "seconds": time.time() - start, **choice}
