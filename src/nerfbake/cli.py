@@ -299,7 +299,7 @@ def cmd_octree_eval(args) -> int:
 
 
 def cmd_octree_info(args) -> int:
-    from nerfbake.octree.io import load_tree, volrend_problems
+    from nerfbake.octree.io import compression_record, load_tree, volrend_problems
 
     tree = load_tree(args.tree)
     lo, hi = tree.world_bounds
@@ -311,7 +311,7 @@ def cmd_octree_info(args) -> int:
         "nonzero_sigma_leaves": int((tree.data.reshape(-1, tree.data_dim)[leaves["index"], -1] > 0).sum()),
         "box_min": lo.tolist(), "box_max": hi.tolist(), "file_bytes": Path(args.tree).stat().st_size,
         "env_map": None if tree.env_map is None else list(tree.env_map.shape[:2]),
-        "volrend_problems": volrend_problems(args.tree),
+        "volrend_problems": volrend_problems(args.tree), "compression": compression_record(args.tree),
     }
     if args.json:
         _print_json(info)

@@ -60,6 +60,10 @@ def test_measured_allocation_keeps_its_target_and_is_what_the_file_holds(tiny_tr
                  str(tiny_scene), "--views", "2", "--sigma-thresh", "0.1", "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["allocation"] == "measured" and out["target_db"] == 0.5 and "measured_loss_db" in out
+    assert main(["octree", "info", str(tmp_path / "cli.npz"), "--json"]) == 0  # the file keeps the choice
+    info = json.loads(capsys.readouterr().out)
+    assert info["volrend_problems"] == [] and info["compression"]["band_bits"] == out["band_bits"]
+    assert info["compression"]["measured_loss_db"] == pytest.approx(out["measured_loss_db"])
     assert main(["octree", "compress", "--tree", str(tiny_tree), "--out", str(tmp_path / "fixed.npz"), "--sigma-thresh", "0.1"]) == 0
     assert "no --data" in capsys.readouterr().out
 

@@ -294,7 +294,7 @@ def test_compress_follows_the_web_layout(tmp_path):
     info = compress_tree(tmp_path / "raw.npz", tmp_path / "c.npz", bits=16, retain=1, sigma_thresh=2.0, band_bits=(16,))
     z = np.load(tmp_path / "c.npz")
     assert sorted(z.files) == sorted(["data_dim", "child", "invradius3", "offset", "data_format", "quant_colors",
-                                      "quant_map", "sigma", "data_retained"])
+                                      "quant_map", "sigma", "data_retained", "compression"])
     assert z["quant_colors"].shape == (15, 65536, 3) and z["quant_map"].dtype == np.uint16
     assert z["data_retained"].shape == (1, tree.num_nodes, 2, 2, 2, 3)
     assert volrend_problems(tmp_path / "c.npz") == []

@@ -38,7 +38,7 @@ def test_smerf_view_matches_the_python_renderer(which, tiny_assets_dir):
 
 
 @pytest.mark.parametrize("which,query", [("built", ""), ("built", "maxTextureSize=64"), ("env-map", ""), ("svox", ""),
-                                         ("svox-deflate", ""), ("compressed", "")])
+                                         ("svox-deflate", ""), ("compressed", ""), ("ours-compressed", "")])
 def test_octree_view_matches_the_python_renderer(which, query, tiny_tree, tiny_scene, tmp_path):
     from nerfbake.data.cameras import Camera
     from nerfbake.data.formats import load_dataset
@@ -46,10 +46,14 @@ def test_octree_view_matches_the_python_renderer(which, query, tiny_tree, tiny_s
     from nerfbake.octree.render import RenderOptions, render_camera
     from nerfbake.viewer.browser import ViewerPage, octree_camera
 
-    if which in ("built", "env-map"):
+    if which in ("built", "env-map", "ours-compressed"):
         path = tiny_tree
         cam = load_dataset(tiny_scene).frames[load_dataset(tiny_scene).split("test")[0]].camera
-    if which == "env-map":  # what lies beyond the box drawn from an environment map (render/envmap.py)
+    if which == "ours-compressed":  # bits chosen by measured error, k-means codebooks, the compression record key
+        from nerfbake.octree.compress import compress_tree
+
+        path = compress_tree(tiny_tree, tmp_path / "c.npz", data=tiny_scene, views=2, sigma_thresh=0.1)["tree"]
+    elif which == "env-map":  # what lies beyond the box drawn from an environment map (render/envmap.py)
         import torch
 
         from nerfbake.octree.io import save_tree

@@ -20,6 +20,7 @@ Three departures, each keeping the file volrend's:
 from __future__ import annotations
 
 import itertools
+import json
 import time
 import zlib
 from pathlib import Path
@@ -27,7 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from nerfbake.eval.metrics import psnr
-from nerfbake.octree.io import env_map_arrays, half_precision, load_tree, tree_from_arrays, write_npz
+from nerfbake.octree.io import COMPRESSION_KEY, env_map_arrays, half_precision, load_tree, tree_from_arrays, write_npz
 from nerfbake.octree.render import RenderOptions, render_camera
 from nerfbake.octree.tree import Octree
 from nerfbake.progress import progress_bar
@@ -365,9 +366,12 @@ def compress_tree(tree_path: str | Path, out: str | Path, bits: int = 16, retain
         for j in range(retain, nb):
             q.fit(j, per_basis[j])
             advance()
-    path = write_npz(out, q.arrays(per_basis, retain, sigma_thresh), compress=True)
+    summary = {"bits": bits, "band_bits": per_basis[retain:], "retain": retain, "sigma_thresh": sigma_thresh,
+               "data_format": f"SH{nb}", "min_extent": min_extent, "codebook": q.codebook,
+               "leaves_kept": int(q.alive_above(sigma_thresh).sum()), **choice}
+    kept = {k: v for k, v in summary.items() if k != "tried"}
+    path = write_npz(out, {**q.arrays(per_basis, retain, sigma_thresh), COMPRESSION_KEY: np.array(json.dumps(kept))},
+                     compress=True)
     raw = Path(tree_path).stat().st_size
     return {"tree": str(path), "source": str(tree_path), "file_bytes": path.stat().st_size, "source_bytes": raw,
-            "ratio": raw / path.stat().st_size, "bits": bits, "band_bits": per_basis[retain:], "retain": retain,
-            "sigma_thresh": sigma_thresh, "data_format": f"SH{nb}", "min_extent": min_extent, "codebook": q.codebook,
-            "leaves_kept": int(q.alive_above(sigma_thresh).sum()), "seconds": time.time() - start, **choice}
+            "ratio": raw / path.stat().st_size, "seconds": time.time() - start, **summary}

@@ -6,8 +6,10 @@ Raw (svox ``N3Tree.save``): int64 ``data_dim``/``n_internal``/``n_free``/``depth
 (B-R, K, 3), ``quant_map`` uint16 (B-R, n, 2, 2, 2), ``sigma`` float16, optional ``data_retained`` float16
 (R, n, 2, 2, 2, 3), without ``data``. See ``shared/reference/plenoctree_anchors.md`` section 1.
 
-nerfbake adds one optional key to either layout: ``env_map``, uint8 (H, W, 3), the colour beyond the tree's box by
-direction (``render/envmap.py``). svox and volrend load the arrays they know by name and ignore it.
+nerfbake adds optional keys, which svox and volrend ignore (they load the arrays they know by name): ``env_map``,
+uint8 (H, W, 3), the colour beyond the tree's box by direction (``render/envmap.py``), in either layout; and in
+compressed trees ``compression``, a unicode JSON string recording how the file was compressed (bits per basis,
+codebook, density threshold, the measured loss and its target) for ``octree info``.
 """
 from __future__ import annotations
 
@@ -39,6 +41,17 @@ def env_map_arrays(tree: Octree) -> dict[str, np.ndarray]:
     if tree.env_map is None:
         return {}
     return {"env_map": to_png(tree.env_map.detach().cpu().numpy())}
+
+
+COMPRESSION_KEY = "compression"
+
+
+def compression_record(path: str | Path) -> dict | None:
+    """What ``octree compress`` recorded in a compressed tree (None for trees without the record)."""
+    import json
+
+    with np.load(path, allow_pickle=False) as z:
+        return json.loads(str(z[COMPRESSION_KEY])) if COMPRESSION_KEY in z.files else None
 
 
 FLOAT16_MAX = float(np.finfo(np.float16).max)
