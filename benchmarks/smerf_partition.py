@@ -29,13 +29,15 @@ from nerfbake.data.formats import load_dataset
 from nerfbake.data.synth import SynthConfig, render_dataset
 from nerfbake.smerf.assets import SceneAssets
 from nerfbake.smerf.bake import bake_student
-from nerfbake.smerf.distill import distill, distill_preset, load_student
+from nerfbake.smerf.distill import distill
+from nerfbake.smerf.run import distill_preset, load_student
 from nerfbake.smerf.evaluate import asset_summary, evaluate_assets, evaluate_student
 from nerfbake.smerf.seams import boundary_cameras, compare_across_boundary
 from nerfbake.smerf.student import StudentConfig
 from nerfbake.teacher.evaluate import evaluate_teacher
 from nerfbake.teacher.presets import preset
-from nerfbake.teacher.train import load_teacher, train_teacher
+from nerfbake.teacher.run import load_teacher
+from nerfbake.teacher.train import train_teacher
 from nerfbake.train.loop import git_revision
 
 QUALITY = ("psnr", "ssim", "lpips_vgg", "ms_per_frame")

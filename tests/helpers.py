@@ -4,7 +4,7 @@ import torch
 
 from nerfbake.fields.hash_sh import HashSHConfig
 from nerfbake.fields.nerf_sh import NeRFSHConfig
-from nerfbake.smerf.distill import DistillConfig
+from nerfbake.smerf.run import DistillConfig
 from nerfbake.smerf.student import StudentConfig
 from nerfbake.teacher.models import HashTeacherConfig, NeRFSHTeacherConfig
 from nerfbake.teacher.presets import TeacherTrainConfig

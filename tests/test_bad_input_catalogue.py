@@ -189,7 +189,7 @@ def student_folder_that_is_a_teacher(tmp):
 
 def student_folder(tmp) -> Path:
     """A student folder whose config.json is valid (a tiny student), so that what fails is its checkpoint."""
-    from nerfbake.smerf.distill import DistillConfig
+    from nerfbake.smerf.run import DistillConfig
     from nerfbake.smerf.partition import Partition
     from nerfbake.smerf.student import StudentConfig
     from nerfbake.train.loop import to_jsonable

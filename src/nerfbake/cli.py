@@ -141,12 +141,12 @@ def cmd_pipeline(args) -> int:
     methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
     teacher = distill = None
     if args.teacher_config:
-        from nerfbake.teacher.train import config_from_dict as teacher_from_dict
+        from nerfbake.teacher.run import config_from_dict as teacher_from_dict
 
         d = json.loads(Path(args.teacher_config).read_text())
         teacher = teacher_from_dict(d.get("train", d))
     if args.distill_config:
-        from nerfbake.smerf.distill import config_from_dict as distill_from_dict
+        from nerfbake.smerf.run import config_from_dict as distill_from_dict
 
         d = json.loads(Path(args.distill_config).read_text())
         distill = distill_from_dict(d.get("distill", d))
@@ -171,7 +171,8 @@ def cmd_report(args) -> int:
 
 def cmd_teacher_train(args) -> int:
     from nerfbake.teacher.presets import preset
-    from nerfbake.teacher.train import config_from_dict, train_teacher
+    from nerfbake.teacher.run import config_from_dict
+    from nerfbake.teacher.train import train_teacher
 
     if args.config:
         d = json.loads(Path(args.config).read_text())
@@ -363,7 +364,8 @@ def cmd_smerf_info(args) -> int:
 
 
 def cmd_distill(args) -> int:
-    from nerfbake.smerf.distill import config_from_dict, distill, distill_preset
+    from nerfbake.smerf.distill import distill
+    from nerfbake.smerf.run import config_from_dict, distill_preset
 
     if args.config:
         d = json.loads(Path(args.config).read_text())
@@ -551,7 +553,7 @@ def build_parser() -> argparse.ArgumentParser:
     oo.add_argument("--continue-on-decrease", action="store_true", help="do not stop when validation PSNR drops")
     oo.add_argument("--json", action="store_true")
     oo.set_defaults(func=cmd_octree_optimize)
-    oc = octree.add_parser("compress", help="median-cut quantise SH into 2^bits codebooks + DEFLATE (web trees)")
+    oc = octree.add_parser("compress", help="quantise SH into codebooks + DEFLATE (web trees), bits chosen by measured loss")
     oc.add_argument("--tree", required=True)
     oc.add_argument("--out", required=True)
     _overwrite_flag(oc)

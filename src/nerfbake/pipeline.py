@@ -145,7 +145,7 @@ def run_teacher(cfg: PipelineConfig, run: Path) -> dict:
 
 def eval_teacher(cfg: PipelineConfig, run: Path) -> dict:
     from nerfbake.teacher.evaluate import evaluate_teacher
-    from nerfbake.teacher.train import load_teacher
+    from nerfbake.teacher.run import load_teacher
 
     res = evaluate_teacher(run / "teacher", "test", cfg.eval_views)
     model = load_teacher(run / "teacher")[0]
@@ -210,7 +210,7 @@ def eval_octree(cfg: PipelineConfig, run: Path) -> dict:
 
 
 def distill_config(cfg: PipelineConfig):
-    from nerfbake.smerf.distill import distill_preset
+    from nerfbake.smerf.run import distill_preset
 
     d = replace(cfg.distill, k=cfg.k) if cfg.distill else distill_preset(cfg.preset, k=cfg.k)
     if cfg.distill_steps:

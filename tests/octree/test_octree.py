@@ -340,7 +340,7 @@ def test_build_optimize_compress_eval_on_a_tiny_scene(tiny_scene, tiny_teacher, 
     tree = load_tree(tmp_path / "tree.npz")
     assert tree.depth_limit == 4 and tree.sh_degree == 2
     ds = load_dataset(tiny_scene)
-    from nerfbake.teacher.train import load_teacher
+    from nerfbake.teacher.run import load_teacher
     teacher, *_ = load_teacher(tiny_teacher)
     cam = ds.frames[ds.split("test")[0]].camera
     a = render_camera(tree, cam)["rgb"]
@@ -404,7 +404,7 @@ def test_an_unbounded_360_teacher_builds_a_tree_over_its_core_and_a_forward_faci
     from nerfbake.data.formats import load_dataset
     from nerfbake.render.envmap import equirect_directions
     from nerfbake.teacher.sampling import ray_box
-    from nerfbake.teacher.train import load_teacher
+    from nerfbake.teacher.run import load_teacher
 
     assert summary["env_map"] == [6, 12]
     tree = load_tree(tmp_path / "fox.npz")

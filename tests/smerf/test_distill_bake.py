@@ -13,7 +13,8 @@ from nerfbake.kernels.merf_grid import merf_lookup, merf_lookup_reference
 from nerfbake.smerf.assets import AssetError, SceneAssets, load_submodel
 from nerfbake.smerf.bake import (BakeError, atlas_shape, bake_student, distance_grid, max_pool, pack_bits,
                                  plane_texels_in_use, quantize_channels)
-from nerfbake.smerf.distill import distill, load_student
+from nerfbake.smerf.distill import distill
+from nerfbake.smerf.run import load_student
 from nerfbake.smerf.partition import PartitionError
 from nerfbake.smerf.student import StudentConfig
 from nerfbake.smerf.validate import asset_problems
@@ -86,7 +87,7 @@ def test_distillation_learns_and_resumes_to_the_same_student(tiny_teacher, tiny_
     from nerfbake.smerf.distill import render_student_camera
     from nerfbake.smerf.student import Student
     from nerfbake.teacher.evaluate import render_camera
-    from nerfbake.teacher.train import load_teacher
+    from nerfbake.teacher.run import load_teacher
 
     trained, cfg, meta = load_student(tiny_student)
     untrained = Student(cfg.student, trained.partition, cfg.seed)
@@ -260,7 +261,7 @@ def test_a_camera_near_a_partition_boundary_looks_alike_from_both_submodels(room
     differs from its teacher (benchmarks/smerf_partition.py measures it on a larger rooms scene)."""
     from nerfbake.data.formats import load_dataset
     from nerfbake.smerf.seams import boundary_cameras, compare_across_boundary
-    from nerfbake.teacher.train import load_teacher
+    from nerfbake.teacher.run import load_teacher
 
     student_dir, assets = rooms_k2
     student, _, meta = load_student(student_dir)
@@ -312,7 +313,7 @@ def test_two_processes_equal_one(tiny_teacher, tmp_path):
     torch.testing.assert_close(a.planes, b.planes, atol=1e-3, rtol=1e-3)
     from nerfbake.data.formats import load_dataset
     from nerfbake.smerf.distill import render_student_camera
-    from nerfbake.teacher.train import load_teacher
+    from nerfbake.teacher.run import load_teacher
 
     teacher = load_teacher(tiny_teacher)[0]
     cam = load_dataset(meta["data"]).frames[0].camera

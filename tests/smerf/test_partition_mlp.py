@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from nerfbake.smerf.baked_render import VIEWER_FROM_TRAIN, deferred_mlp_weights
+from nerfbake.smerf.assets import VIEWER_FROM_TRAIN
+from nerfbake.smerf.baked_render import deferred_mlp_weights
 from nerfbake.smerf.deferred_mlp import GridMLP
 from nerfbake.smerf.partition import Partition, PartitionError
 from nerfbake.smerf.seams import boundary_cameras
@@ -92,7 +93,7 @@ def test_grid_mlp_trains_and_its_tv_is_zero_when_constant():
 
 
 def test_simulated_quantisation_is_the_bake_round_trip_with_straight_through_gradients():
-    from nerfbake.smerf.quantize import RANGE_DENSITY, RANGE_FEATURES, from_bytes, simulate, to_bytes
+    from nerfbake.render.quantize import RANGE_DENSITY, RANGE_FEATURES, from_bytes, simulate, to_bytes
 
     x = (torch.rand(1000, dtype=torch.float64) - 0.5) * 40
     for rng in (RANGE_FEATURES, RANGE_DENSITY):

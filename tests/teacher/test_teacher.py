@@ -13,7 +13,8 @@ from nerfbake.fields.hash_sh import HashSHConfig
 from nerfbake.render.quadrature import composite, weights_from_density
 from nerfbake.render.sh import eval_sh_color
 from nerfbake.teacher.models import HashTeacherConfig
-from nerfbake.teacher.train import config_from_dict, load_teacher, train_teacher
+from nerfbake.teacher.run import config_from_dict, load_teacher
+from nerfbake.teacher.train import train_teacher
 from tests.helpers import one_and_two_processes, tiny_config
 
 

@@ -26,7 +26,7 @@ from nerfbake.octree.environment import bake_environment, needs_environment
 from nerfbake.octree.io import save_tree
 from nerfbake.octree.tree import Octree, tree_from_cells
 from nerfbake.progress import progress_bar
-from nerfbake.teacher.train import load_teacher
+from nerfbake.teacher.run import load_teacher
 from nerfbake.train.loop import DataParallel, step_generator
 
 

@@ -17,6 +17,10 @@ import numpy as np
 
 from nerfbake.errors import NerfbakeError, reading
 
+# The viewer's world axes from the training frame's: (x', y', z') = (-x, z, y), its own inverse. The baked assets,
+# the viewer's camera and the student's deferred-MLP view directions all use it.
+VIEWER_FROM_TRAIN = np.array([[-1.0, 0, 0], [0, 0, 1], [0, 1, 0]])
+
 
 class AssetError(NerfbakeError):
     """A SMERF asset directory that cannot be read; names the file and the fix."""

@@ -31,7 +31,7 @@ from nerfbake.atomic import DIR_MODE, check_output_folder, remove_stale_temps, r
 from nerfbake.errors import NerfbakeError
 from nerfbake.progress import console, progress_bar
 from nerfbake.smerf.deferred_mlp import deferred_mlp_text
-from nerfbake.smerf.quantize import RANGE_DENSITY, RANGE_FEATURES, to_bytes
+from nerfbake.render.quantize import RANGE_DENSITY, RANGE_FEATURES, to_bytes
 from nerfbake.smerf.validate import ATLAS_BLOCK, MAX_ATLAS_SIDE, OCCUPANCY_FACTORS
 
 BLOCK = 8
@@ -205,7 +205,8 @@ def pack_atlas(sparse: torch.Tensor, blocks: torch.Tensor) -> tuple[np.ndarray, 
 def viewer_camera(camera, partition, near: float = 0.02, far: float = 100.0):
     """A dataset camera as the viewer's three.js camera: centre and rotation in the viewer frame (partition cube,
     axes (-x, z, y)), projection from the intrinsics (pixel centres at +0.5)."""
-    from nerfbake.smerf.baked_render import VIEWER_FROM_TRAIN, ViewerCamera
+    from nerfbake.smerf.assets import VIEWER_FROM_TRAIN
+    from nerfbake.smerf.baked_render import ViewerCamera
 
     w, h = camera.width, camera.height
     proj = np.array([[2 * camera.fx / w, 0, 1 - 2 * camera.cx / w, 0],
@@ -301,8 +302,9 @@ def bake_student(student_dir: str | Path, out: str | Path, stride: int = 2, over
     import time
 
     from nerfbake.data.formats import load_dataset
-    from nerfbake.smerf.distill import load_student, teacher_background
-    from nerfbake.teacher.train import load_teacher
+    from nerfbake.smerf.distill import teacher_background
+    from nerfbake.smerf.run import load_student
+    from nerfbake.teacher.run import load_teacher
     from nerfbake.train.loop import DataParallel
 
     out = Path(out)

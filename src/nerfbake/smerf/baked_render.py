@@ -11,11 +11,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from nerfbake.smerf.assets import AssetError, SceneAssets
+from nerfbake.smerf.assets import VIEWER_FROM_TRAIN, AssetError, SceneAssets
 from nerfbake.smerf.deferred_mlp import deferred_inputs
-
-# viewer frame <-> training frame: (x', y', z') = (-x, z, y); its own inverse
-VIEWER_FROM_TRAIN = np.array([[-1.0, 0, 0], [0, 0, 1], [0, 1, 0]])
 
 
 @dataclass

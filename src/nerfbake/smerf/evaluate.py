@@ -45,8 +45,9 @@ def _finish(result: dict, out_dir: Path, split: str, extra: dict) -> dict:
 def evaluate_student(student_dir: str | Path, data: str | Path | None = None, split: str = "test",
                      max_views: int | None = None, write_images: bool = True, downscale: float | None = None) -> dict:
     """``downscale`` None evaluates at the one the student was distilled at."""
-    from nerfbake.smerf.distill import load_student, render_student_camera
-    from nerfbake.teacher.train import load_teacher
+    from nerfbake.smerf.distill import render_student_camera
+    from nerfbake.smerf.run import load_student
+    from nerfbake.teacher.run import load_teacher
     from nerfbake.train.loop import default_device
 
     student_dir = Path(student_dir)

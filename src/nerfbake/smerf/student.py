@@ -23,10 +23,16 @@ from torch import nn
 from nerfbake.kernels.merf_grid import CHANNELS, merf_lookup
 from nerfbake.render.contraction import contract, uncontract
 from nerfbake.render.packed import packed_sum, packed_weights
+from nerfbake.smerf.assets import VIEWER_FROM_TRAIN
 from nerfbake.smerf.deferred_mlp import GridMLP, deferred_inputs
 from nerfbake.smerf.partition import Partition
 
-VIEWER_FROM_TRAIN = torch.tensor([[-1.0, 0, 0], [0, 0, 1], [0, 1, 0]])
+
+def _axes_like(x: torch.Tensor) -> torch.Tensor:
+    """:data:`VIEWER_FROM_TRAIN` as a tensor of ``x``'s dtype and device."""
+    return torch.from_numpy(VIEWER_FROM_TRAIN).to(x)
+
+
 BACKGROUND = (0.5, 0.5, 0.5)  # the viewer's default background, entering only through the MLP input (SNeRG mode)
 
 
@@ -63,12 +69,12 @@ class Student(nn.Module):
         """World points (N, 3) -> contracted submodel coordinates in viewer axes (N, 3) and the inf-norm of the
         uncontracted submodel point (how much the contraction squeezes there)."""
         local = (self.to_cube(world) - self.cell_centres[params_idx]) * self.partition.submodel_scale
-        local = local @ VIEWER_FROM_TRAIN.to(local).T
+        local = local @ _axes_like(local).T
         return contract(local), local.abs().amax(-1)
 
     def world_from_contracted(self, z: torch.Tensor, params_idx: torch.Tensor) -> torch.Tensor:
         """Inverse of :meth:`contracted`: contracted submodel points (viewer axes) -> world points."""
-        local = uncontract(z) @ VIEWER_FROM_TRAIN.to(z)  # the axis map is its own inverse (and symmetric)
+        local = uncontract(z) @ _axes_like(z)  # the axis map is its own inverse (and symmetric)
         cube = local / self.partition.submodel_scale + self.cell_centres[params_idx]
         centre = torch.as_tensor(self.partition.centre, dtype=z.dtype, device=z.device)
         return cube / self.partition.scale + centre

@@ -14,7 +14,7 @@ from nerfbake.data.formats import load_dataset
 from nerfbake.data.rays import CameraBatch, pixel_grid
 from nerfbake.eval.views import evaluate_views, to_png
 from nerfbake.progress import progress_bar
-from nerfbake.teacher.train import load_teacher
+from nerfbake.teacher.run import load_teacher
 from nerfbake.train.loop import git_revision, write_json_atomic
 
 

@@ -13,20 +13,15 @@ import torch
 from nerfbake.data.dataset import Dataset, object_box
 from nerfbake.data.formats import load_dataset
 from nerfbake.data.pixels import PixelStore
-from nerfbake.errors import RunFolderError, reading
 from nerfbake.progress import console, progress_bar
 from nerfbake.teacher.appearance import APPEARANCE_LR_SCALE, ImageAppearance, resolve_appearance
-from nerfbake.teacher.models import HashTeacherConfig, NeRFSHTeacherConfig, SceneBox, build_teacher
+from nerfbake.teacher.models import SceneBox, build_teacher
 from nerfbake.teacher.presets import TeacherTrainConfig
-from nerfbake.train.loop import (RunLog, finish_run, DataParallel, Interrupt, default_device, RateMeter, git_revision, load_checkpoint, log_linear_lr,
+from nerfbake.teacher.run import CHECKPOINT, CONFIG
+from nerfbake.train.loop import (RunLog, finish_run, DataParallel, Interrupt, RateMeter, git_revision, load_checkpoint, log_linear_lr,
                                  save_checkpoint, step_decay_lr, step_generator, to_jsonable,
                                  write_json_atomic)
-from nerfbake.fields.hash_sh import HashSHConfig
-from nerfbake.fields.nerf_sh import NeRFSHConfig
-from nerfbake.teacher.proposal import ProposalConfig
 
-CHECKPOINT = "checkpoint.pt"
-CONFIG = "config.json"
 
 
 def scene_box(ds: Dataset) -> SceneBox:
@@ -60,20 +55,6 @@ def scene_box(ds: Dataset) -> SceneBox:
     return SceneBox([-1.0] * 3, [1.0] * 3, near, 1e10, contracted=True)
 
 
-def config_from_dict(d: dict) -> TeacherTrainConfig:
-    d = dict(d)
-    h, n = d.pop("hash"), d.pop("nerf_sh")
-    if "proposal" in h:
-        h["proposal"].setdefault("stratified", False)  # runs made before the stratified draw
-    prop = ProposalConfig(**h.pop("proposal")) if "proposal" in h else ProposalConfig()
-    h.setdefault("unbounded_sampler", "proposal")  # runs made before the contracted occupancy grid
-    d.setdefault("appearance", "none")  # runs made before per-image appearance
-    d.setdefault("normalize", "auto")  # runs made before --normalize
-    hash_cfg = HashTeacherConfig(field=HashSHConfig(**h.pop("field")), proposal=prop, **h)
-    nerf_cfg = NeRFSHTeacherConfig(field=NeRFSHConfig(**n.pop("field")), **n)
-    return TeacherTrainConfig(hash=hash_cfg, nerf_sh=nerf_cfg, **d)
-
-
 def make_optimizer(model, cfg: TeacherTrainConfig, appearance: ImageAppearance | None = None):
     """Adam (instant-ngp's betas, eps 1e-15), fused, with weight decay on the MLPs only. A group's ``lr_scale``
     multiplies the schedule's rate (the per-image appearance learns slower than the field)."""
@@ -85,31 +66,6 @@ def make_optimizer(model, cfg: TeacherTrainConfig, appearance: ImageAppearance |
     if appearance is not None:
         groups.append({"params": list(appearance.parameters()), "weight_decay": 0.0, "lr_scale": APPEARANCE_LR_SCALE})
     return torch.optim.Adam(groups, lr=cfg.lr, betas=(0.9, 0.99), eps=1e-15, fused=True)
-
-
-def load_teacher(run: Path):
-    """(teacher, config, dataset root, checkpoint state) from a run folder, with clear errors."""
-    run = Path(run)
-    cfg_path = run / CONFIG
-    if not cfg_path.is_file():
-        raise RunFolderError(f"{cfg_path}: missing; {run} is not a teacher run folder (nerfbake teacher train --out)")
-    with reading(cfg_path, RunFolderError, "retrain with this version, or pass the --out folder of nerfbake teacher train"):
-        meta = json.loads(cfg_path.read_text())
-        if not isinstance(meta, dict) or "train" not in meta:
-            kind = meta.get("kind", "different kind of") if isinstance(meta, dict) else "non-object"
-            raise RunFolderError(f"{cfg_path}: not a teacher run folder (it holds a {kind} config); pass the --out "
-                                 "folder of nerfbake teacher train")
-        cfg = config_from_dict(meta["train"])
-        box = SceneBox(**meta["box"])
-        model = build_teacher(cfg.field, cfg.model_config, box)
-    state = load_checkpoint(run / CHECKPOINT)
-    try:
-        model.load_state_dict(state["model"])
-    except (RuntimeError, KeyError, TypeError) as exc:
-        first = str(exc).splitlines()[0]
-        raise RunFolderError(f"{run / CHECKPOINT}: does not match {cfg_path} ({first}); retrain or restore the pair") from None
-    model.to(default_device()).eval()
-    return model, cfg, meta, state
 
 
 def draw_batch(store: PixelStore, model, cfg: TeacherTrainConfig, gen: torch.Generator, dp: DataParallel) -> dict:
