@@ -4,11 +4,10 @@ through the trainer (``smerf/distill.py``).
 """
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass, field as dc_field
 from pathlib import Path
 
-from nerfbake.errors import RunFolderError, reading
+from nerfbake.errors import RunFolderError, read_folder_config, reading
 from nerfbake.smerf.partition import Partition
 from nerfbake.smerf.student import Student, StudentConfig
 from nerfbake.train.loop import load_checkpoint
@@ -88,14 +87,8 @@ def config_from_dict(d: dict) -> DistillConfig:
 def load_student(path: str | Path) -> tuple[Student, DistillConfig, dict]:
     """(student, config, folder metadata) from a student folder, with clear errors."""
     path = Path(path)
-    cfg_path = path / CONFIG
-    if not cfg_path.is_file():
-        raise RunFolderError(f"{cfg_path}: missing; {path} is not a student folder (nerfbake distill --out)")
-    with reading(cfg_path, RunFolderError, "pass the folder written by nerfbake distill, or distill again"):
-        meta = json.loads(cfg_path.read_text())
-        if not isinstance(meta, dict) or meta.get("kind") != "smerf-student":
-            kind = meta.get("kind") if isinstance(meta, dict) else None
-            raise RunFolderError(f"{cfg_path}: not a SMERF student (kind {kind!r}); pass the folder written by nerfbake distill")
+    meta = read_folder_config(path, CONFIG, "student folder", "nerfbake distill", lambda m: m.get("kind") == "smerf-student")
+    with reading(path / CONFIG, RunFolderError, "pass the folder written by nerfbake distill, or distill again"):
         cfg = config_from_dict(meta["distill"])
         student = Student(cfg.student, Partition.from_json(meta["partition"]), cfg.seed)
     state = load_checkpoint(path / CHECKPOINT)

@@ -5,10 +5,9 @@ trainer (``teacher/train.py``), so reading a run does not pull in training code.
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
-from nerfbake.errors import RunFolderError, reading
+from nerfbake.errors import RunFolderError, read_folder_config, reading
 from nerfbake.fields.hash_sh import HashSHConfig
 from nerfbake.fields.nerf_sh import NeRFSHConfig
 from nerfbake.teacher.models import HashTeacherConfig, NeRFSHTeacherConfig, SceneBox, build_teacher
@@ -38,14 +37,8 @@ def load_teacher(run: Path):
     """(teacher, config, dataset root, checkpoint state) from a run folder, with clear errors."""
     run = Path(run)
     cfg_path = run / CONFIG
-    if not cfg_path.is_file():
-        raise RunFolderError(f"{cfg_path}: missing; {run} is not a teacher run folder (nerfbake teacher train --out)")
+    meta = read_folder_config(run, CONFIG, "teacher run folder", "nerfbake teacher train", lambda m: "train" in m)
     with reading(cfg_path, RunFolderError, "retrain with this version, or pass the --out folder of nerfbake teacher train"):
-        meta = json.loads(cfg_path.read_text())
-        if not isinstance(meta, dict) or "train" not in meta:
-            kind = meta.get("kind", "different kind of") if isinstance(meta, dict) else "non-object"
-            raise RunFolderError(f"{cfg_path}: not a teacher run folder (it holds a {kind} config); pass the --out "
-                                 "folder of nerfbake teacher train")
         cfg = config_from_dict(meta["train"])
         box = SceneBox(**meta["box"])
         model = build_teacher(cfg.field, cfg.model_config, box)
