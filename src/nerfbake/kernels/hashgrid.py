@@ -183,6 +183,11 @@ class HashEncodeFunction(torch.autograd.Function):
 
 
 def hash_encode(x: torch.Tensor, table: torch.Tensor, resolution: torch.Tensor, dense: torch.Tensor) -> torch.Tensor:
+    """instant-ngp's multiresolution hash encoding on the Warp kernels: points ``x`` (N, 3) in [0, 1]^3, ``table``
+    (L, T, F) features per level, ``resolution`` (L,) cells per axis, ``dense`` (L,) 1 where a level's
+    (res + 1)^3 corners fit the table and are indexed directly -> (N, L * F), each level's 8 corners trilinearly
+    blended. Gradients reach ``table`` only (:class:`HashEncodeFunction`); :func:`hash_encode_reference` is
+    the torch twin the tests compare with."""
     return HashEncodeFunction.apply(x, table, resolution, dense)
 
 

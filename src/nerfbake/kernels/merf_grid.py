@@ -177,6 +177,12 @@ class MerfLookup(torch.autograd.Function):
 
 
 def merf_lookup(z, sm, sparse, planes, s: int, t: int, quantize: bool = True):
+    """MERF's grid read on the Warp kernels: contracted points ``z`` (N, 3) in [-2, 2]^3 of submodels ``sm`` (N,)
+    int32 -> (sparse (N, 8), planes (N, 8)): the trilinear read of submodel ``sm``'s S^3 grid (``sparse``
+    rows sm * S^3 + (u * S + v) * S + w) and the sum of its three bilinear T^2 plane reads (``planes`` rows
+    (sm * 3 + k) * T^2 + a * T + b), each texel first sent through the viewer's 8-bit round trip when
+    ``quantize`` (straight-through). Gradients reach ``sparse`` and ``planes``; :func:`merf_lookup_reference` is
+    the torch twin."""
     return MerfLookup.apply(z, sm, sparse, planes, s, t, quantize)
 
 
