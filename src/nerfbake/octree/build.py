@@ -32,6 +32,8 @@ from nerfbake.train.loop import DataParallel, step_generator
 
 @dataclass
 class BuildConfig:
+    """Settings of the tree extraction (PlenOctrees section 4.2): the dense grid, the weight mask over the training
+    rays, the box fitted to what the views see, and the samples averaged into each leaf's SH."""
     grid: int = 512  # dense grid side G = 2^(depth+1); leaves at the finest depth have side box/G
     weight_thresh: float = 0.001  # the authors' code default (configs keep it)
     samples_per_leaf: int = 256
@@ -54,6 +56,7 @@ class BuildConfig:
 
 
 def build_preset(name: str) -> BuildConfig:
+    """The paper's build settings, or ``cpu-small``'s (same 512^3 grid, fewer samples per leaf)."""
     if name == "paper":
         return BuildConfig()
     if name == "cpu-small":
@@ -65,6 +68,7 @@ def build_preset(name: str) -> BuildConfig:
 
 @torch.no_grad()
 def query_density(teacher, points: torch.Tensor, chunk: int) -> torch.Tensor:
+    """The teacher's density at ``points`` (N, 3) -> (N,) on the CPU, ``chunk`` points per query."""
     dev = next(teacher.parameters()).device
     out = torch.empty(points.shape[0])
     for s in range(0, points.shape[0], chunk):

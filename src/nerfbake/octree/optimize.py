@@ -27,6 +27,8 @@ from nerfbake.train.loop import default_device
 
 @dataclass
 class OptimizeConfig:
+    """Fine-tuning settings: epochs of one SGD step per training image, the learning rate, how often and on how many
+    views validation runs, and whether to stop at the first drop."""
     epochs: int = 80
     lr: float = 1e7
     val_every: int = 2
@@ -38,6 +40,7 @@ class OptimizeConfig:
 
 
 def optimize_preset(name: str) -> OptimizeConfig:
+    """The paper's fine-tuning (80 epochs, lr 1e7) or ``cpu-small``'s (3 epochs, lr 5e6)."""
     if name == "paper":
         return OptimizeConfig()
     if name == "cpu-small":
@@ -62,12 +65,15 @@ def image_step(tree, camera, target: torch.Tensor, opts: RenderOptions, lr: floa
 
 
 def validation_psnr(tree, ds, indices, background) -> float:
+    """Mean PSNR of the tree over the views ``indices`` of ``ds``, rendered as evaluation renders them."""
     opts = RenderOptions(background=background)
     return float(np.mean([float(psnr(render_camera(tree, ds.frames[i].camera, opts)["rgb"], ds.image(i)[..., :3])[0])
                           for i in indices]))
 
 
 def optimize_tree(tree_path: str | Path, data: str | Path, out: str | Path, cfg: OptimizeConfig) -> dict:
+    """Fine-tune the tree at ``tree_path`` on the training images of ``data`` and write the best-validating leaves
+    to ``out``; returns the per-epoch history and the best epoch."""
     start = time.time()
     device = default_device()
     tree = load_tree(tree_path, device)

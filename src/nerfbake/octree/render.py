@@ -109,6 +109,9 @@ def trace_reference(tree: Octree, origins: torch.Tensor, dirs: torch.Tensor, opt
 
 
 def leaf_exit_reference(q: torch.Tensor, d: torch.Tensor, cube: torch.Tensor) -> torch.Tensor:
+    """Distance in tree units to where rays leave their leaves: ``q`` (N, 3) the points in leaf-local [0, 1)^3,
+    ``d`` (N, 3) tree-space directions, ``cube`` (N,) cells per axis at the leaf's depth (what
+    :meth:`Octree.descend` returns) -> (N,). The torch twin of the kernel's step."""
     big = torch.full_like(q, 1e9)
     t = torch.where(d > 0, (1.0 - q) / d, torch.where(d < 0, -q / d, big))
     return t.amin(-1).clamp_max(1e9) / cube

@@ -17,6 +17,7 @@ N = 2  # branching factor per axis; volrend's shaders hard-code 2
 
 
 def sh_format(num_basis: int) -> str:
+    """svox's ``data_format`` string for a tree with ``num_basis`` SH bases per channel."""
     return f"SH{num_basis}"
 
 
@@ -32,6 +33,7 @@ def basis_from_format(data_format: str, data_dim: int) -> int:
 
 @dataclass
 class Octree:
+    """A PlenOctree in svox's layout (see the module docstring); tensors on one device."""
     child: torch.Tensor  # int32 (n, 2, 2, 2)
     data: torch.Tensor  # float32 (n, 2, 2, 2, 3B+1)
     offset: torch.Tensor  # float32 (3,)

@@ -87,6 +87,7 @@ def params_path(sm_dir: Path) -> Path:
 
 
 def read_params(sm_dir: Path) -> dict:
+    """``scene_params.json`` of one ``sm_XXX`` folder, with an error naming it when it is missing or unreadable."""
     path = params_path(sm_dir)
     if not path.is_file():
         raise AssetError(f"{Path(sm_dir) / 'scene_params.json'}: missing; point at an sm_XXX folder of a baked SMERF scene")

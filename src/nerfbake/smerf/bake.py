@@ -39,7 +39,7 @@ MAX_BLOCKS_PER_AXIS = MAX_ATLAS_SIDE // ATLAS_BLOCK  # 227, also below the 255 "
 
 
 class BakeError(NerfbakeError):
-    pass
+    """Baking cannot proceed (nothing occupied, an unwritable or non-empty output); names the cause and the fix."""
 
 
 # ---- geometry --------------------------------------------------------------------------------------------------
@@ -80,6 +80,8 @@ def median_filter_3(grid: torch.Tensor) -> torch.Tensor:
 
 
 def max_pool(grid: torch.Tensor, factor: int) -> torch.Tensor:
+    """Boolean occupancy (D, H, W) pooled by ``factor`` (a cell is occupied if any of its cells is), as the viewer's
+    coarser occupancy levels are."""
     if factor == 1:
         return grid
     return F.max_pool3d(grid[None, None].float(), factor, stride=factor, ceil_mode=True)[0, 0] > 0
@@ -231,6 +233,8 @@ def test_frames_json(cameras) -> dict:
 
 # ---- one submodel -----------------------------------------------------------------------------------------------
 def scene_params(student, params_idx: int, atlas: dict) -> dict:
+    """The ``scene_params.json`` of submodel ``params_idx``: resolutions, value ranges, the export flags the
+    official viewer reads, the atlas layout and the submodel's place in the partition."""
     part, cfg = student.partition, student.cfg
     t, s = cfg.triplane_resolution, cfg.sparse_resolution
     return {

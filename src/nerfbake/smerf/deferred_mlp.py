@@ -41,6 +41,8 @@ def deferred_inputs(acc: dict, view_dirs: torch.Tensor, background, combine_op: 
 
 
 class GridMLP(nn.Module):
+    """SMERF's grid of deferred MLPs: one small MLP (in_dim -> width -> width -> 3) per vertex of a P^3 lattice per
+    submodel, whose weights are trilinearly interpolated at the camera position."""
     def __init__(self, num_submodels: int, in_dim: int = 41, width: int = 16, grid: int = 5, activation: str = "elu",
                  generator: torch.Generator | None = None):
         super().__init__()

@@ -115,11 +115,14 @@ def random_neighbour(params_idx: np.ndarray, partition: Partition, gen: torch.Ge
 
 
 def teacher_background(ds) -> tuple[float, float, float]:
+    """The background colour the teacher was trained against (white when the dataset has none)."""
     return tuple(ds.background or (1.0, 1.0, 1.0))
 
 
 def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume: bool = False,
             stop_at: int | None = None) -> Path:
+    """Train a student from the teacher run ``teacher_run`` into ``out`` (see the module docstring); ``resume``
+    continues a saved folder, ``stop_at`` ends early at that step (for tests of resuming). Returns ``out``."""
     from nerfbake.teacher.run import load_teacher
 
     out = Path(out)

@@ -68,6 +68,8 @@ def evaluate_student(student_dir: str | Path, data: str | Path | None = None, sp
 
 
 def bake_record(assets: Path) -> dict:
+    """``bake.json`` of a baked folder: the partition and the world-to-viewer transform that evaluation against a
+    dataset needs."""
     path = Path(assets) / "bake.json"
     if not path.is_file():
         raise AssetError(f"{path}: missing; evaluating against a dataset needs the world-to-viewer transform that "
@@ -78,6 +80,8 @@ def bake_record(assets: Path) -> dict:
 def evaluate_assets(assets: str | Path, data: str | Path | None = None, split: str = "test",
                     max_views: int | None = None, write_images: bool = True, step_mult: float = 1.0,
                     downscale: float | None = None) -> dict:
+    """Quality of baked assets on ``split`` of ``data`` (the dataset ``bake.json`` records when None), rendered
+    by the viewer-exact renderer at ``step_mult`` x the viewer's step; metrics, ms per frame, submodels, bytes."""
     from nerfbake.smerf.bake import viewer_camera
     from nerfbake.smerf.baked_render import render_baked
     from nerfbake.smerf.partition import Partition

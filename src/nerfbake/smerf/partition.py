@@ -16,11 +16,13 @@ from nerfbake.errors import NerfbakeError
 
 
 class PartitionError(NerfbakeError):
-    pass
+    """A partition that cannot be made or read (no cameras, a bad record); names the cause and the fix."""
 
 
 @dataclass
 class Partition:
+    """SMERF's K^3 camera-based partition: the scene normalised so the cameras fill [-1, 1]^3, cut into K^3 cells, a
+    submodel for each cell that holds a training camera (``sm_to_params``: -1 for the others)."""
     k: int
     centre: np.ndarray  # normalisation: p_cube = (p - centre) * scale, cameras inside [-1, 1]^3
     scale: float

@@ -18,6 +18,8 @@ CONFIG = "config.json"
 
 @dataclass
 class DistillConfig:
+    """Everything distillation depends on: K, steps and batch, learning rates, loss weights and schedules, culling,
+    and the student's own sizes (``student``)."""
     preset: str = "cpu-small"
     k: int = 1
     steps: int = 5000
@@ -62,6 +64,8 @@ class DistillConfig:
 
 
 def distill_preset(name: str, k: int = 1) -> DistillConfig:
+    """``cpu-small`` (S = 256 at K = 1, 128 above, 6500 steps) or ``paper`` (SMERF's 50k steps at S = 512, T =
+    2048)."""
     if name == "cpu-small":
         # S = 256 at K = 1 (the authors' 12 GB-GPU config pairs it with T = 1024) and 6500 steps. lego_400, 25 test
         # views, teacher 32.33 dB: S = 128 / 5000 steps (21 min on 2 cores) gave a student of 30.64; S = 256 / 5000
@@ -77,6 +81,7 @@ def distill_preset(name: str, k: int = 1) -> DistillConfig:
 
 
 def config_from_dict(d: dict) -> DistillConfig:
+    """The config recorded in a student's ``config.json`` (lists back to tuples)."""
     d = dict(d)
     student = StudentConfig(**d.pop("student"))
     for key in ("geometry_mult", "cull_alpha", "cull_window"):

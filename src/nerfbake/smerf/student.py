@@ -38,6 +38,8 @@ BACKGROUND = (0.5, 0.5, 0.5)  # the viewer's default background, entering only t
 
 @dataclass
 class StudentConfig:
+    """A submodel's sizes: S^3 sparse grid, T^2 planes, the P^3 grid of deferred MLPs, and the grids' starting
+    values."""
     sparse_resolution: int = 128  # S (paper 512)
     triplane_resolution: int = 1024  # T (paper 2048)
     mlp_grid: int = 5  # P
@@ -47,6 +49,8 @@ class StudentConfig:
 
 
 class Student(nn.Module):
+    """The MERF-style student of every alive submodel: sparse grids (alive * S^3, 8) and planes (alive * 3 * T^2, 8)
+    read through the viewer's 8-bit round trip, and the grid of deferred MLPs."""
     def __init__(self, cfg: StudentConfig, partition: Partition, seed: int = 0):
         super().__init__()
         self.cfg, self.partition = cfg, partition

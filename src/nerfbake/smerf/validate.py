@@ -31,6 +31,8 @@ def _close(a, b) -> bool:
 
 
 def submodel_problems(sm_dir: str | Path) -> list[str]:
+    """Reasons the official viewer would fail on one ``sm_XXX`` folder (missing keys, files of the wrong size or
+    shape); empty when it loads."""
     sm_dir = Path(sm_dir)
     out: list[str] = []
     path = sm_dir / "scene_params.json"
