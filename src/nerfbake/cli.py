@@ -71,7 +71,7 @@ def cmd_synth(args) -> int:
     cfg = SynthConfig(scene=args.scene, width=args.width, height=args.height, views=args.views, spp=args.spp, seed=args.seed)
     from nerfbake.progress import progress_bar
 
-    held = max(4, cfg.views // 4)
+    held = cfg.held_out_views
     with progress_bar(f"synth {cfg.scene}", cfg.views + 2 * held, unit="views") as advance:
         out = render_dataset(cfg, Path(args.out), progress=lambda done, total: advance(), overwrite=args.overwrite)
     print(f"wrote {out} ({cfg.views} train / {held} val / {held} test views, {cfg.width}x{cfg.height})")
@@ -103,7 +103,7 @@ def cmd_demo(args) -> int:
     scene_dir = out / "scene"
     cfg = SynthConfig(scene="objects", width=args.width, height=args.width, views=args.views, spp=args.spp, seed=0)
     if not (scene_dir / "transforms_train.json").is_file():
-        held = max(4, cfg.views // 4)
+        held = cfg.held_out_views
         with progress_bar("demo: synthesize scene", cfg.views + 2 * held, unit="views") as advance:
             render_dataset(cfg, scene_dir, progress=lambda d, t: advance())
     pcfg = demo_config(str(out), str(scene_dir), eval_views=args.eval_views)

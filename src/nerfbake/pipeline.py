@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Callable
 
 from nerfbake.errors import NerfbakeError
-from nerfbake.train.loop import DataParallel, write_json_atomic
+from nerfbake.train.loop import RUN_CONFIG, DataParallel, run_complete, write_json_atomic
 
 METHODS = ("octree", "smerf")
 # Photos larger than this on their long side are downscaled by a power of two when no --downscale is given (the
@@ -100,7 +100,7 @@ def skip_reason(stage: Stage, run: Path) -> str | None:
     cameras, out to infinity, with no box around it that its cameras look into from outside."""
     if stage.method != "octree":
         return None
-    meta = json.loads((run / "teacher" / "config.json").read_text())
+    meta = json.loads((run / "teacher" / RUN_CONFIG).read_text())
     kind = meta.get("dataset", {}).get("scene_kind")
     if meta["box"].get("contracted") and kind == "forward-facing":
         return ("a PlenOctree covers one bounded box, and this forward-facing capture's content lies in front of its "
@@ -126,12 +126,12 @@ def teacher_config(cfg: PipelineConfig):
 def teacher_normalize(run: Path) -> str:
     """The normalisation the run's teacher was trained in: trees live in its frame, so fine-tuning and evaluating
     them must load the photos the same way."""
-    return json.loads((run / "teacher" / "config.json").read_text())["train"].get("normalize", "auto")
+    return json.loads((run / "teacher" / RUN_CONFIG).read_text())["train"].get("normalize", "auto")
 
 
 def require_complete(folder: Path) -> None:
     """Trainers catch Ctrl-C to save a checkpoint and return; the pipeline must not record such a stage as done."""
-    if not json.loads((folder / "config.json").read_text()).get("complete"):
+    if not run_complete(folder):
         raise KeyboardInterrupt(f"{folder}: training stopped before its last step; re-run the pipeline to resume")
 
 
@@ -145,12 +145,12 @@ def run_teacher(cfg: PipelineConfig, run: Path) -> dict:
 
 def eval_teacher(cfg: PipelineConfig, run: Path) -> dict:
     from nerfbake.teacher.evaluate import evaluate_teacher
-    from nerfbake.teacher.run import load_teacher
+    from nerfbake.teacher.run import CHECKPOINT, load_teacher
 
     res = evaluate_teacher(run / "teacher", "test", cfg.eval_views)
     model = load_teacher(run / "teacher")[0]
     weights = 4 * sum(p.numel() for p in model.parameters())
-    ckpt = run / "teacher" / "checkpoint.pt"
+    ckpt = run / "teacher" / CHECKPOINT
     return {"method": f"teacher ({cfg.field})", **metrics_of(res), "ms_per_frame": 1000 * res["seconds_per_view"],
             "memory_bytes": weights, "disk_bytes": ckpt.stat().st_size, "images": str(run / "teacher" / "eval" / "test")}
 

@@ -44,6 +44,11 @@ class SynthConfig:
     fov_deg: float | None = None  # across the longer image side; None: 40 for the object scenes, 75 indoors
 
     @property
+    def held_out_views(self) -> int:
+        """Views in each of the val and test splits: a quarter of the training views, at least 4."""
+        return max(4, self.views // 4)
+
+    @property
     def fov(self) -> float:
         """Indoors a 40-degree camera 1 to 1.5 units from a wall sees little but the wall."""
         return self.fov_deg if self.fov_deg is not None else (75.0 if self.scene == "rooms" else 40.0)
@@ -283,7 +288,7 @@ def render_dataset(cfg: SynthConfig, out: Path, progress=None, overwrite: bool =
     sensor = scene.sensors()[0]
     params = mi.traverse(sensor)
     rng = np.random.default_rng(cfg.seed)
-    held = max(4, cfg.views // 4)
+    held = cfg.held_out_views
     splits = {"train": cfg.views, "val": held, "test": held}
     out = Path(out)
     check_output_folder(out, overwrite, "dataset")

@@ -67,7 +67,7 @@ def submodel_center(params: dict, params_idx: int) -> np.ndarray:
     return VIEWER_FROM_TRAIN @ ((ijk + 0.5) * params["submodel_voxel_size"] - 1.0)
 
 
-def camera_rays(cam: ViewerCamera, center: np.ndarray, scale: float) -> tuple[torch.Tensor, torch.Tensor]:
+def viewer_rays(cam: ViewerCamera, center: np.ndarray, scale: float) -> tuple[torch.Tensor, torch.Tensor]:
     """Per pixel (rows top to bottom), the ray origin and unnormalised direction to the near plane, both in the
     submodel frame: the viewer's full-screen quad interpolates exactly these."""
     cols = (np.arange(cam.width) + 0.5) / cam.width * 2 - 1
@@ -123,7 +123,7 @@ def deferred_shade(acc: dict, view_dirs: torch.Tensor, weights, params: dict, ba
     return acc["color"] + x
 
 
-def render_baked(scene: SceneAssets, cam: ViewerCamera, step_mult: float = 1.0, visibility_delay: float = 0.99,
+def render_baked(scene: SceneAssets, cam: ViewerCamera, step_mult: int = 1, visibility_delay: float = 0.99,
                  background=(0.5, 0.5, 0.5), device: str = "cpu", params_idx: int | None = None) -> np.ndarray:
     """(H, W, 3) float image in [0, 1] (before the viewer's 8-bit rounding). ``step_mult`` is the viewer's
     ``stepMult``: a whole number that divides the step and multiplies the step budget (0.5 would leave no steps).
@@ -139,7 +139,7 @@ def render_baked(scene: SceneAssets, cam: ViewerCamera, step_mult: float = 1.0, 
         raise ValueError(f"params_idx={si}: {scene.root} has submodels 0..{len(scene.params['params_to_sm']) - 1}")
     sm = scene.submodel(si)
     scale = float(sm.params["submodel_scale"])
-    origins, dirs = camera_rays(cam, submodel_center(sm.params, si), scale)
+    origins, dirs = viewer_rays(cam, submodel_center(sm.params, si), scale)
     key = (si, device)
     if key not in scene.device_scenes:  # upload once per submodel and device, not every frame
         scene.device_scenes[key] = to_warp_scene(sm, device)

@@ -25,7 +25,6 @@ A student folder holds ``config.json`` (this config, the partition, the teacher 
 """
 from __future__ import annotations
 
-import json
 import math
 import time
 from pathlib import Path
@@ -40,7 +39,7 @@ from nerfbake.progress import console, progress_bar
 from nerfbake.smerf.partition import Partition, PartitionError
 from nerfbake.smerf.run import CHECKPOINT, CONFIG, DistillConfig
 from nerfbake.smerf.student import Student
-from nerfbake.train.loop import (RunLog, finish_run, DataParallel, Interrupt, RateMeter, git_revision, load_checkpoint, log_linear_lr,
+from nerfbake.train.loop import (RunLog, finish_run, run_complete, DataParallel, Interrupt, RateMeter, git_revision, load_checkpoint, log_linear_lr,
                                  save_checkpoint, step_generator, to_jsonable, write_json_atomic)
 
 def charbonnier(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -133,8 +132,7 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
     train_idx = ds.split("train")
     origins = np.stack([ds.frames[i].camera.origin for i in train_idx])
     partition = Partition.from_cameras(origins, cfg.k)
-    if (out / CONFIG).is_file() and not resume and dp.is_main:
-        if json.loads((out / CONFIG).read_text()).get("complete"):
+    if not resume and dp.is_main and run_complete(out):
             raise ValueError(f"{out}: already holds a finished student; pass --resume to continue or choose another --out")
     torch.manual_seed(cfg.seed)
     student = Student(cfg.student, partition, cfg.seed).to(dp.device)

@@ -78,7 +78,7 @@ def bake_record(assets: Path) -> dict:
 
 
 def evaluate_assets(assets: str | Path, data: str | Path | None = None, split: str = "test",
-                    max_views: int | None = None, write_images: bool = True, step_mult: float = 1.0,
+                    max_views: int | None = None, write_images: bool = True, step_mult: int = 1,
                     downscale: float | None = None) -> dict:
     """Quality of baked assets on ``split`` of ``data`` (the dataset ``bake.json`` records when None), rendered
     by the viewer-exact renderer at ``step_mult`` x the viewer's step; metrics, ms per frame, submodels, bytes."""

@@ -10,10 +10,10 @@ from pathlib import Path
 from nerfbake.errors import RunFolderError, read_folder_config, reading
 from nerfbake.smerf.partition import Partition
 from nerfbake.smerf.student import Student, StudentConfig
-from nerfbake.train.loop import load_checkpoint
+from nerfbake.train.loop import RUN_CONFIG, load_checkpoint
 
 CHECKPOINT = "student.pt"
-CONFIG = "config.json"
+CONFIG = RUN_CONFIG
 
 
 @dataclass

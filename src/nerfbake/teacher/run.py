@@ -13,10 +13,10 @@ from nerfbake.fields.nerf_sh import NeRFSHConfig
 from nerfbake.teacher.models import HashTeacherConfig, NeRFSHTeacherConfig, SceneBox, build_teacher
 from nerfbake.teacher.presets import TeacherTrainConfig
 from nerfbake.teacher.proposal import ProposalConfig
-from nerfbake.train.loop import default_device, load_checkpoint
+from nerfbake.train.loop import RUN_CONFIG, default_device, load_checkpoint
 
 CHECKPOINT = "checkpoint.pt"
-CONFIG = "config.json"
+CONFIG = RUN_CONFIG
 
 
 def config_from_dict(d: dict) -> TeacherTrainConfig:

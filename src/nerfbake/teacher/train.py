@@ -2,7 +2,6 @@
 data parallelism). A run folder holds ``config.json``, ``checkpoint.pt``, ``metrics.jsonl`` and ``val/``."""
 from __future__ import annotations
 
-import json
 import time
 from dataclasses import asdict
 from pathlib import Path
@@ -18,7 +17,7 @@ from nerfbake.teacher.appearance import APPEARANCE_LR_SCALE, ImageAppearance, re
 from nerfbake.teacher.models import SceneBox, build_teacher
 from nerfbake.teacher.presets import TeacherTrainConfig
 from nerfbake.teacher.run import CHECKPOINT, CONFIG
-from nerfbake.train.loop import (RunLog, finish_run, DataParallel, Interrupt, RateMeter, git_revision, load_checkpoint, log_linear_lr,
+from nerfbake.train.loop import (RunLog, finish_run, run_complete, DataParallel, Interrupt, RateMeter, git_revision, load_checkpoint, log_linear_lr,
                                  save_checkpoint, step_decay_lr, step_generator, to_jsonable,
                                  write_json_atomic)
 
@@ -130,9 +129,7 @@ def train_teacher(data: str | Path, out: str | Path, cfg: TeacherTrainConfig, re
     ds = load_dataset(data, downscale=cfg.downscale, normalize=cfg.normalize)
     box = scene_box(ds)
     ckpt_path = out / CHECKPOINT
-    if (out / CONFIG).is_file() and not resume and dp.is_main:
-        existing = json.loads((out / CONFIG).read_text())
-        if existing.get("complete"):
+    if not resume and dp.is_main and run_complete(out):
             raise ValueError(f"{out}: already holds a finished teacher; pass --resume to continue or choose another --out")
     model = build_teacher(cfg.field, cfg.model_config, box).to(dp.device)
     appearance_mode = resolve_appearance(cfg.appearance, ds.background is not None)

@@ -275,6 +275,15 @@ def training_curve(run: Path, key: str, points: int | None = None) -> list[dict]
     return recs[::every] + ([recs[-1]] if (len(recs) - 1) % every else [])
 
 
+RUN_CONFIG = "config.json"  # every training run folder's config (teacher and student); finish_run records "complete"
+
+
+def run_complete(folder: Path) -> bool:
+    """Whether the run in ``folder`` reached its last step, as :func:`finish_run` recorded it."""
+    path = Path(folder) / RUN_CONFIG
+    return path.is_file() and bool(json.loads(path.read_text()).get("complete"))
+
+
 def finish_run(dp: "DataParallel", ckpt_path: Path, state_fn, config_path: Path, meta: dict, step: int, total: int) -> None:
     """End of a (possibly interrupted) run: the main rank saves the last checkpoint and records in the config
     whether the run is complete; every rank waits; an unfinished run says how to continue."""
