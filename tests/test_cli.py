@@ -3,7 +3,9 @@ import subprocess
 import sys
 
 import numpy as np
+import pytest
 
+from nerfbake.cli import main
 from nerfbake.data import images
 
 
@@ -35,3 +37,26 @@ def test_downscaled_images_are_cached_on_disk(tmp_path, monkeypatch, lego):
     np.testing.assert_array_equal(np.load(cached[0]), a)
     monkeypatch.setattr(images, "_MEMORY_CACHE", images.ImageCache())  # a fresh process: served from disk
     np.testing.assert_array_equal(images.load_image_uint8(path, (100, 100)), a)
+
+
+def test_every_command_keeps_its_recorded_flags(capsys):
+    """Flags are contracts other tools call. The parser's commands and flags must equal tests/cli_flags.json, and
+    each command's ``--help`` must list them; after a deliberate change re-record with
+    ``python -m tests.cli_flags > tests/cli_flags.json``."""
+    from pathlib import Path
+
+    from nerfbake.cli import build_parser
+    from tests.cli_flags import command_flags
+
+    recorded = json.loads((Path(__file__).parent / "cli_flags.json").read_text())
+    now = command_flags(build_parser())
+    assert sorted(now) == sorted(recorded), "commands added or removed"
+    for command, flags in recorded.items():
+        assert now[command] == flags, f"{command}: flags changed ({sorted(set(flags) ^ set(now[command]))})"
+        argv = [] if command == "nerfbake" else command.split()
+        with pytest.raises(SystemExit) as exc:
+            main([*argv, "--help"])
+        assert exc.value.code == 0
+        text = capsys.readouterr().out
+        missing = [f for f in flags if f not in text]
+        assert missing == [], f"`nerfbake {command} --help` does not list {missing}"
