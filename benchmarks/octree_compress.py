@@ -17,7 +17,8 @@ import time
 from pathlib import Path
 
 from nerfbake.data.formats import load_dataset
-from nerfbake.octree.compress import TARGET_DB, ViewLoss, compress_tree
+from nerfbake.octree.compress import TARGET_DB, compress_tree
+from nerfbake.octree.evaluate import ViewLoss
 from nerfbake.octree.io import load_tree, volrend_problems
 from nerfbake.train.loop import git_revision
 
@@ -53,7 +54,7 @@ def main() -> None:
         results.append({
             "name": name, "band_bits": s["band_bits"], "sigma_thresh": s["sigma_thresh"], "codebook": s["codebook"],
             "file_bytes": s["file_bytes"], "ratio": raw_bytes / s["file_bytes"],
-            "test_loss_db": held_out.reference - held_out.psnr(load_tree(path)),
+            "test_loss_db": held_out(load_tree(path)),
             "train_loss_db": s.get("measured_loss_db"), "seconds": time.time() - start,
             "volrend_ok": volrend_problems(path) == [],
         })

@@ -8,7 +8,8 @@ import pytest
 
 from nerfbake.cli import main
 from nerfbake.data.formats import load_dataset
-from nerfbake.octree.compress import ViewLoss, compress_tree, kmeans_refine, median_cut
+from nerfbake.octree.compress import compress_tree, kmeans_refine, median_cut
+from nerfbake.octree.evaluate import ViewLoss
 from nerfbake.octree.io import load_tree, volrend_problems
 
 

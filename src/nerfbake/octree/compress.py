@@ -27,9 +27,8 @@ from pathlib import Path
 
 import numpy as np
 
-from nerfbake.eval.metrics import psnr
 from nerfbake.octree.io import COMPRESSION_KEY, env_map_arrays, half_precision, load_tree, tree_from_arrays, write_npz
-from nerfbake.octree.render import RenderOptions, render_camera
+from nerfbake.octree.evaluate import ViewLoss
 from nerfbake.octree.tree import Octree
 from nerfbake.progress import progress_bar
 
@@ -88,11 +87,18 @@ def kmeans_refine(colors: np.ndarray, codebook: np.ndarray, index: np.ndarray, i
         if used.size < 2:
             break
         index = used[cKDTree(book[used]).query(x, workers=-1)[1]]
-        counts = np.bincount(index, minlength=k)
-        nz = counts > 0
-        for c in range(3):
-            book[nz, c] = np.bincount(index, weights=x[:, c], minlength=k)[nz] / counts[nz]
+        book = cell_means(x, index, book)
     return book.astype(np.float32), index
+
+
+def cell_means(colors: np.ndarray, index: np.ndarray, book: np.ndarray) -> np.ndarray:
+    """``book`` (K, 3) float64 with every entry that has colours (M, 3) assigned by ``index`` (M,) moved to their
+    mean; entries without any keep their value."""
+    counts = np.bincount(index, minlength=len(book))
+    nz = counts > 0
+    for c in range(3):
+        book[nz, c] = np.bincount(index, weights=colors[:, c].astype(np.float64), minlength=len(book))[nz] / counts[nz]
+    return book
 
 
 MIN_EXTENT = 2.0 ** -9  # about float16's spacing at 1: finer splits would quantise rounding noise
@@ -145,11 +151,7 @@ class Quantizer:
             if j not in self._cuts:
                 self._cuts[j] = median_cut(colors, self.bits, self.min_extent)[1]
             idx = self._cuts[j] >> (self.bits - bits)
-            counts = np.bincount(idx, minlength=2 ** bits)
-            book = np.zeros((2 ** bits, 3))
-            nz = counts > 0
-            for c in range(3):
-                book[nz, c] = np.bincount(idx, weights=colors[:, c].astype(np.float64), minlength=2 ** bits)[nz] / counts[nz]
+            book = cell_means(colors, idx, np.zeros((2 ** bits, 3)))
             if self.codebook == "kmeans":
                 book, idx = kmeans_refine(colors, book, idx, KMEANS_ITERS)
             self._fits[key] = book.astype(np.float16), idx.astype(np.uint16)
@@ -227,29 +229,6 @@ class Quantizer:
 
     def estimated_bytes(self, per_basis: list[int], retain: int) -> int:
         return sum(self.basis_bytes(j, per_basis[j]) for j in range(retain, self.nb))
-
-
-class ViewLoss:
-    """PSNR loss in dB of a candidate against the uncompressed tree, both scored against the photos of a few views
-    of ``split`` (training views when choosing: the held-out ones stay unseen), rendered as ``octree eval`` does."""
-
-    def __init__(self, tree: Octree, ds, views: int, split: str = "train"):
-        from nerfbake.eval.views import pick_views
-
-        self.opts = RenderOptions(background=tuple(ds.background or (1.0, 1.0, 1.0)))
-        picked = pick_views(ds.split(split), views)
-        self.frames = [ds.frames[i].camera for i in picked]
-        self.images = [ds.image(i)[..., :3] for i in picked]
-        if not self.frames:
-            raise ValueError(f"{ds.root}: no {split} views to measure the compression loss on")
-        self.reference = self.psnr(tree)
-
-    def psnr(self, tree: Octree) -> float:
-        return float(np.mean([float(psnr(render_camera(tree, cam, self.opts)["rgb"], img)[0])
-                              for cam, img in zip(self.frames, self.images)]))
-
-    def __call__(self, tree: Octree) -> float:
-        return self.reference - self.psnr(tree)
 
 
 def choose_allocation(q: Quantizer, loss: ViewLoss, retain: int, sigma_thresh: float, target_db: float) -> dict:

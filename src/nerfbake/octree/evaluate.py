@@ -10,9 +10,11 @@ import numpy as np
 import torch
 
 from nerfbake.data.formats import load_dataset
+from nerfbake.eval.metrics import psnr
 from nerfbake.eval.views import evaluate_views, pick_views
 from nerfbake.octree.io import load_tree
 from nerfbake.octree.render import RenderOptions, render_camera
+from nerfbake.octree.tree import Octree
 from nerfbake.train.loop import default_device, git_revision, write_json_atomic
 
 
@@ -32,6 +34,28 @@ def time_frames(tree, cameras, opts: RenderOptions, repeats: int = 3) -> float:
             render_camera(tree, cam, opts)
     _sync(tree.device)
     return (time.perf_counter() - start) / (repeats * len(cameras))
+
+
+class ViewLoss:
+    """Mean PSNR of trees on a few evenly spread views of ``split`` (photos loaded once), rendered as ``octree eval``
+    renders them; calling it gives a tree's loss in dB against ``reference``, the first tree's PSNR. Compression
+    scores its candidates with it on training views, fine-tuning its epochs on validation views."""
+
+    def __init__(self, tree: Octree, ds, views: int, split: str = "train"):
+        self.opts = RenderOptions(background=tuple(ds.background or (1.0, 1.0, 1.0)))
+        picked = pick_views(ds.split(split), views)
+        self.frames = [ds.frames[i].camera for i in picked]
+        self.images = [ds.image(i)[..., :3] for i in picked]
+        if not self.frames:
+            raise ValueError(f"{ds.root}: the {split!r} split has no views to score trees on")
+        self.reference = self.psnr(tree)
+
+    def psnr(self, tree: Octree) -> float:
+        return float(np.mean([float(psnr(render_camera(tree, cam, self.opts)["rgb"], img)[0])
+                              for cam, img in zip(self.frames, self.images)]))
+
+    def __call__(self, tree: Octree) -> float:
+        return self.reference - self.psnr(tree)
 
 
 def evaluate_tree(tree_path: str | Path, data: str | Path, split: str = "test", max_views: int | None = None,

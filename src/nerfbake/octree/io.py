@@ -14,6 +14,7 @@ codebook, density threshold, the measured loss and its target) for ``octree info
 from __future__ import annotations
 
 import ast
+import json
 import os
 import struct
 import zipfile
@@ -48,8 +49,6 @@ COMPRESSION_KEY = "compression"
 
 def compression_record(path: str | Path) -> dict | None:
     """What ``octree compress`` recorded in a compressed tree (None for trees without the record)."""
-    import json
-
     with np.load(path, allow_pickle=False) as z:
         return json.loads(str(z[COMPRESSION_KEY])) if COMPRESSION_KEY in z.files else None
 

@@ -16,11 +16,10 @@ import torch
 
 from nerfbake.data.formats import load_dataset
 from nerfbake.data.rays import camera_rays
-from nerfbake.eval.metrics import psnr
-from nerfbake.eval.views import pick_views
 from nerfbake.kernels.octree import backward_buffers, render_backward, render_forward
+from nerfbake.octree.evaluate import ViewLoss
 from nerfbake.octree.io import load_tree, save_tree
-from nerfbake.octree.render import RenderOptions, render_camera
+from nerfbake.octree.render import RenderOptions
 from nerfbake.progress import progress_bar
 from nerfbake.train.loop import default_device
 
@@ -64,13 +63,6 @@ def image_step(tree, camera, target: torch.Tensor, opts: RenderOptions, lr: floa
     return mse
 
 
-def validation_psnr(tree, ds, indices, background) -> float:
-    """Mean PSNR of the tree over the views ``indices`` of ``ds``, rendered as evaluation renders them."""
-    opts = RenderOptions(background=background)
-    return float(np.mean([float(psnr(render_camera(tree, ds.frames[i].camera, opts)["rgb"], ds.image(i)[..., :3])[0])
-                          for i in indices]))
-
-
 def optimize_tree(tree_path: str | Path, data: str | Path, out: str | Path, cfg: OptimizeConfig) -> dict:
     """Fine-tune the tree at ``tree_path`` on the training images of ``data`` and write the best-validating leaves
     to ``out``; returns the per-epoch history and the best epoch."""
@@ -84,11 +76,10 @@ def optimize_tree(tree_path: str | Path, data: str | Path, out: str | Path, cfg:
     # Captures without a validation split (LLFF, COLMAP, transforms.json: train and test only) select the best epoch
     # on training views: choosing it on the test views would leak them into the figures reported on them.
     val_split = "val" if "val" in ds.splits else "train"
-    val = pick_views(ds.split(val_split), cfg.val_views)
-    bg = tuple(ds.background or (1.0, 1.0, 1.0))
-    opts = RenderOptions.training(background=bg)
+    val = ViewLoss(tree, ds, cfg.val_views, split=val_split)
+    opts = RenderOptions.training(background=tuple(ds.background or (1.0, 1.0, 1.0)))
     gen = torch.Generator().manual_seed(cfg.seed)
-    best_psnr = validation_psnr(tree, ds, val, bg)
+    best_psnr = val.reference
     history = [{"epoch": 0, "val_psnr": best_psnr}]
     best = tree.data.clone()
     best_epoch = 0
@@ -104,7 +95,7 @@ def optimize_tree(tree_path: str | Path, data: str | Path, out: str | Path, cfg:
                 advance()
         entry = {"epoch": epoch, "train_psnr": float(-10 * np.log10(np.mean(losses)))}
         if epoch % cfg.val_every == 0 or epoch == cfg.epochs:
-            entry["val_psnr"] = validation_psnr(tree, ds, val, bg)
+            entry["val_psnr"] = val.psnr(tree)
             if entry["val_psnr"] > best_psnr:
                 best_psnr, best, best_epoch = entry["val_psnr"], tree.data.clone(), epoch
             elif not cfg.continue_on_decrease:

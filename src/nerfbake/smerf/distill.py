@@ -133,7 +133,7 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
     origins = np.stack([ds.frames[i].camera.origin for i in train_idx])
     partition = Partition.from_cameras(origins, cfg.k)
     if not resume and dp.is_main and run_complete(out):
-            raise ValueError(f"{out}: already holds a finished student; pass --resume to continue or choose another --out")
+        raise ValueError(f"{out}: already holds a finished student; pass --resume to continue or choose another --out")
     torch.manual_seed(cfg.seed)
     student = Student(cfg.student, partition, cfg.seed).to(dp.device)
     opt = torch.optim.Adam([{"params": [student.sparse, student.planes], "lr": cfg.lr_grid},

@@ -130,7 +130,7 @@ def train_teacher(data: str | Path, out: str | Path, cfg: TeacherTrainConfig, re
     box = scene_box(ds)
     ckpt_path = out / CHECKPOINT
     if not resume and dp.is_main and run_complete(out):
-            raise ValueError(f"{out}: already holds a finished teacher; pass --resume to continue or choose another --out")
+        raise ValueError(f"{out}: already holds a finished teacher; pass --resume to continue or choose another --out")
     model = build_teacher(cfg.field, cfg.model_config, box).to(dp.device)
     appearance_mode = resolve_appearance(cfg.appearance, ds.background is not None)
     appearance = ImageAppearance(len(ds.split("train"))).to(dp.device) if appearance_mode == "affine" else None
