@@ -30,8 +30,12 @@ def chromium_path() -> str:
 class ViewerPage:
     """The viewer open on one scene in headless chromium; console errors are collected in ``errors``."""
 
-    def __init__(self, scene, query: str = "", size=(320, 240), software_gl: bool = True, timeout_s: float = 300):
+    def __init__(self, scene, query: str = "", size=(320, 240), software_gl: bool = True, timeout_s: float = 300,
+                 static=None, device: dict | None = None):
+        """``static``: serve another copy of the viewer's files (a benchmark's baseline); ``device``: Playwright
+        context options such as a phone's ``viewport``, ``device_scale_factor``, ``is_mobile``, ``has_touch``."""
         self.scene, self.query, self.size, self.software_gl, self.timeout_ms = scene, query, size, software_gl, timeout_s * 1000
+        self.static, self.device = static, device or {}
         self.errors: list[str] = []
         self.console: list[str] = []
 
@@ -39,13 +43,14 @@ class ViewerPage:
         from playwright.sync_api import sync_playwright
 
         self._stack = contextlib.ExitStack()
-        self.server = self._stack.enter_context(ViewerServer(self.scene, port=0))
+        extra = {"static": self.static} if self.static else {}
+        self.server = self._stack.enter_context(ViewerServer(self.scene, port=0, **extra))
         self._pw = self._stack.enter_context(sync_playwright())
         profile = self._stack.enter_context(tempfile.TemporaryDirectory(prefix="nerfbake-chromium-"))
         flags = CHROMIUM_FLAGS + (SOFTWARE_GL_FLAGS if self.software_gl else ["--enable-gpu", "--use-angle=default"])
         context = self._pw.chromium.launch_persistent_context(
             profile, executable_path=chromium_path(), headless=True, args=flags,
-            viewport={"width": self.size[0], "height": self.size[1]})
+            **{"viewport": {"width": self.size[0], "height": self.size[1]}, **self.device})
         self._stack.callback(context.close)
         self.page = context.pages[0] if context.pages else context.new_page()
         self.page.set_default_timeout(self.timeout_ms)

@@ -122,7 +122,7 @@ def parse_range(header: str | None, size: int) -> tuple[int, int] | None | str:
     return first, last
 
 
-def make_handler(scene: Scene):
+def make_handler(scene: Scene, static: Path = STATIC):
     class Handler(BaseHTTPRequestHandler):
         server_version = "nerfbake-view"
         timeout = CLIENT_TIMEOUT_S
@@ -153,12 +153,12 @@ def make_handler(scene: Scene):
         def _serve(self, head: bool):
             path = unquote(urlsplit(self.path).path)
             if path in ("/", "/index.html"):
-                return self._file(STATIC / "index.html", None, head, cache="no-cache")
+                return self._file(static / "index.html", None, head, cache="no-cache")
             if path == "/scene.json":
                 body = json.dumps(scene.describe()).encode()
                 return self._send(HTTPStatus.OK, body, "application/json", {"Cache-Control": "no-cache"}, head)
             if path.startswith("/viewer/"):
-                rel, root, allowed, cache = path[len("/viewer/"):], STATIC, None, "no-cache"
+                rel, root, allowed, cache = path[len("/viewer/"):], static, None, "no-cache"
             elif path.startswith("/scene/"):
                 rel, root, allowed, cache = path[len("/scene/"):], scene.root, scene.allows, "public, max-age=3600"
             else:
@@ -236,10 +236,12 @@ class PooledHTTPServer(ThreadingHTTPServer):
 class ViewerServer:
     """A threaded HTTP server for one scene, started in the background (``with ViewerServer(...) as s: s.url``)."""
 
-    def __init__(self, scene: str | Path | Scene, host: str = "127.0.0.1", port: int = 8000, workers: int = WORKERS):
+    def __init__(self, scene: str | Path | Scene, host: str = "127.0.0.1", port: int = 8000, workers: int = WORKERS,
+                 static: Path = STATIC):
+        """``static``: the viewer's page and scripts (another copy only for benchmarks/viewer_speed.py's baseline)."""
         self.scene = scene if isinstance(scene, Scene) else find_scene(scene)
         try:
-            self.httpd = PooledHTTPServer((host, port), make_handler(self.scene), workers)
+            self.httpd = PooledHTTPServer((host, port), make_handler(self.scene, Path(static)), workers)
         except OSError as exc:
             raise SceneError(f"cannot listen on {host}:{port} ({exc.strerror or exc}); another program (or another "
                              f"nerfbake view) may hold the port: pass --port with a free one, or --port 0 for any") from exc

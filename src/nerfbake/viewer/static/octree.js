@@ -37,7 +37,7 @@ export class OctreeScene {
     const env = tree.env || {width: 1, height: 1, data: new Uint8Array(3)};
     this.envTex = environmentTexture(gl, env.width, env.height, env.data);
     this.bytes = cl.w * cl.h * cl.layers * 4 + packed.byteLength + env.width * env.height * 4;
-    this.program = createProgram(gl, octreeFragment(this.tps));
+    this.program = createProgram(gl, octreeFragment(tree.nb));
   }
 
   // World-space bounding sphere of the tree (for the default camera).
@@ -76,12 +76,11 @@ export class OctreeScene {
     gl.uniform1f(u.uStepSize, o.stepSize);
     gl.uniform1f(u.uSigmaThresh, o.sigmaThresh);
     gl.uniform1f(u.uStopThresh, o.stopThresh);
-    gl.uniform1i(u.uNumBasis, this.tree.nb);
     gl.uniform1i(u.uBasisMin, o.basisMin);
     gl.uniform1i(u.uBasisMax, Math.min(o.basisMax, this.tree.nb));
     gl.uniform1i(u.uDepthMode, o.depth ? 1 : 0);
-    gl.uniform2i(u.uChildTile, this.childLayout.w, this.childLayout.h);
-    gl.uniform2i(u.uDataTile, this.dataLayout.w, this.dataLayout.h);
+    gl.uniform3i(u.uChildTile, ...this.childLayout.shift);
+    gl.uniform3i(u.uDataTile, ...this.dataLayout.shift);
     bindTextures(gl, this.program, [['tChild', gl.TEXTURE_2D_ARRAY, this.childTex], ['tData', gl.TEXTURE_2D_ARRAY, this.dataTex],
                                      ['tEnv', gl.TEXTURE_2D, this.envTex]]);
     drawFullscreen(gl, target, width, height);
@@ -89,15 +88,22 @@ export class OctreeScene {
   }
 }
 
+// Power-of-two widths (and heights, once there is more than one layer), so that the shader finds texel i with
+// shifts and masks: integer division is slow on the GPU and slower still in SwiftShader.
 function tiling(texels, maxSize, maxLayers, what) {
-  const w = Math.min(maxSize, Math.max(1, texels));
-  const h = Math.min(maxSize, Math.ceil(texels / w));
+  const log2 = (v) => Math.round(Math.log2(v));
+  const cap = 2 ** Math.floor(Math.log2(maxSize));
+  const w = Math.min(cap, 2 ** Math.ceil(Math.log2(Math.max(1, texels))));
+  const oneLayer = Math.ceil(texels / w) <= cap;
+  const h = oneLayer ? Math.ceil(texels / w) : cap;
   const layers = Math.ceil(texels / (w * h));
   if (layers > maxLayers) {
     throw new ViewerError(`the tree's ${what} need ${layers} texture layers of ${w}x${h}; this device allows ${maxLayers}. ` +
                           'Build a smaller tree (lower --grid) or open it on a device with larger texture limits.');
   }
-  return {w, h, layers};
+  // x = i & (w - 1); y = (i >> log2 w) & yMask; layer = i >> layerShift (31: always 0 with one layer)
+  const shift = [log2(w), oneLayer ? 0x7fffffff : h - 1, oneLayer ? 31 : log2(w) + log2(h)];
+  return {w, h, layers, shift};
 }
 
 function decodeTree(z, name) {
@@ -153,43 +159,21 @@ function decodeTree(z, name) {
   return {child: child.data, data, dim, nb, offset, invradius, env, numNodes: n, numLeaves: leaves, format: fmt};
 }
 
-function octreeFragment(tps) {
-  return `#version 300 es
-precision highp float;
-precision highp int;
-precision highp sampler2DArray;
-precision highp isampler2DArray;
-#define TPS ${tps}
-out vec4 fragColor;
-uniform vec2 uViewport;
-uniform vec2 uPixelOffset;
-uniform vec4 uIntrinsics;  // fx, fy, cx, cy (pixels, rows counted from the top)
-uniform vec3 uOrigin;
-uniform mat3 uRotation;    // camera-to-world (OpenGL: looks down -z)
-uniform vec3 uOffset;
-uniform vec3 uInvRadius;
-uniform vec3 uBBoxMin;
-uniform vec3 uBBoxMax;
-uniform vec3 uBackground;
-uniform int uHasEnv;        // 1: colour beyond the box from tEnv (equirectangular, render/envmap.py), else uBackground
-uniform sampler2D tEnv;
-uniform float uStepSize;
-uniform float uSigmaThresh;
-uniform float uStopThresh;
-uniform int uNumBasis;
-uniform int uBasisMin;
-uniform int uBasisMax;
-uniform int uDepthMode;
-uniform ivec2 uChildTile;
-uniform ivec2 uDataTile;
-uniform isampler2DArray tChild;
-uniform sampler2DArray tData;
+// The leaf colour as straight-line code for this tree's SH count: texel t of a slot holds data[4t..4t+3], the
+// layout is [r_0..r_nb-1, g_0.., b_0.., sigma] (svox), so every coefficient's texel and component are constants.
+function shColourSource(nb) {
+  const tps = Math.ceil((3 * nb + 1) / 4);
+  const lines = [...Array(tps).keys()].map((t) => `  vec4 t${t} = ${t === (3 * nb >> 2) ? 'last' : `dataAt(slot, ${t})`};`);
+  const comp = 'xyzw';
+  for (let ch = 0; ch < 3; ch++) {
+    const terms = [...Array(nb).keys()].map((k) => { const i = ch * nb + k; return `basis[${k}] * t${i >> 2}.${comp[i & 3]}`; });
+    lines.push(`  s.${'xyz'[ch]} = ${terms.join(' + ')};`);
+  }
+  return lines.join('\n');
+}
 
-ivec3 tileAddress(int i, ivec2 tile) { return ivec3(i % tile.x, (i / tile.x) % tile.y, i / (tile.x * tile.y)); }
-int childAt(int slot) { return texelFetch(tChild, tileAddress(slot, uChildTile), 0).r; }
-vec4 dataAt(int slot, int t) { return texelFetch(tData, tileAddress(slot * TPS + t, uDataTile), 0); }
-
-void shBasis(vec3 d, out float b[25]) {
+// Real SH basis up to degree 4 in svox's order and signs.
+const SH_BASIS = `void shBasis(vec3 d, out float b[25]) {
   float x = d.x, y = d.y, z = d.z;
   float xx = x * x, yy = y * y, zz = z * z, xy = x * y, yz = y * z, xz = x * z;
   b[0] = 0.28209479177387814;
@@ -217,7 +201,46 @@ void shBasis(vec3 d, out float b[25]) {
   b[22] = 0.47308734787878004 * (xx - yy) * (7.0 * zz - 1.0);
   b[23] = -1.7701307697799304 * xz * (xx - 3.0 * yy);
   b[24] = 0.6258357354491761 * (xx * (xx - 3.0 * yy) - yy * (3.0 * xx - yy));
-}
+}`;
+
+function octreeFragment(nb) {
+  const sigIndex = 3 * nb;
+  return `#version 300 es
+precision highp float;
+precision highp int;
+precision highp sampler2DArray;
+precision highp isampler2DArray;
+#define TPS ${Math.ceil((3 * nb + 1) / 4)}
+#define NB ${nb}
+out vec4 fragColor;
+uniform vec2 uViewport;
+uniform vec2 uPixelOffset;
+uniform vec4 uIntrinsics;  // fx, fy, cx, cy (pixels, rows counted from the top)
+uniform vec3 uOrigin;
+uniform mat3 uRotation;    // camera-to-world (OpenGL: looks down -z)
+uniform vec3 uOffset;
+uniform vec3 uInvRadius;
+uniform vec3 uBBoxMin;
+uniform vec3 uBBoxMax;
+uniform vec3 uBackground;
+uniform int uHasEnv;        // 1: colour beyond the box from tEnv (equirectangular, render/envmap.py), else uBackground
+uniform sampler2D tEnv;
+uniform float uStepSize;
+uniform float uSigmaThresh;
+uniform float uStopThresh;
+uniform int uBasisMin;
+uniform int uBasisMax;
+uniform int uDepthMode;
+uniform ivec3 uChildTile;   // (log2 width, row mask, layer shift) of the tiling in octree.js
+uniform ivec3 uDataTile;
+uniform isampler2DArray tChild;
+uniform sampler2DArray tData;
+
+ivec3 tileAddress(int i, ivec3 tile) { return ivec3(i & ((1 << tile.x) - 1), (i >> tile.x) & tile.y, i >> tile.z); }
+int childAt(int slot) { return texelFetch(tChild, tileAddress(slot, uChildTile), 0).r; }
+vec4 dataAt(int slot, int t) { return texelFetch(tData, tileAddress(slot * TPS + t, uDataTile), 0); }
+
+${SH_BASIS}
 
 vec3 background(vec3 d) {
   if (uHasEnv == 0) return uBackground;
@@ -225,6 +248,12 @@ vec3 background(vec3 d) {
   float t = acos(clamp(d.z, -1.0, 1.0)) * 0.3183098861837907;
   return textureLod(tEnv, vec2(s, t), 0.0).rgb;
 }
+
+const int MAX_LEVELS = 24;
+
+// findMSB (GLSL ES 3.1) for 0 <= v < 2^24: the exponent of float(v), which is exact there; -127 for 0.
+int highestBit(int v) { return (floatBitsToInt(float(v)) >> 23) - 127; }
+const float CELLS = 16777216.0;  // 2^MAX_LEVELS: a point in [0, 1)^3 as integer cell coordinates at the finest level
 
 void main() {
   vec2 pix = vec2(gl_FragCoord.x, uViewport.y - gl_FragCoord.y) + uPixelOffset;  // +0.5 centres, rows from the top
@@ -251,50 +280,51 @@ void main() {
   }
   float basis[25];
   shBasis(d, basis);
-  int sigIndex = 3 * uNumBasis;
+  for (int k = 0; k < NB; k++) if (k < uBasisMin || k >= uBasisMax) basis[k] = 0.0;
   vec3 acc = vec3(0.0);
   float dep = 0.0;
   float T = 1.0;
   bool stopped = false;
+  // The path of the last descent: the node at each level and the leaf's integer coordinates; the next point
+  // resumes from the deepest node whose cell still holds it (usually one or two levels up, not the root).
+  int path[MAX_LEVELS + 1];
+  path[0] = 0;
+  ivec3 leafCell = ivec3(-1);
+  int leafLevel = 0;
   for (int iter = 0; iter < 100000; iter++) {
     if (t >= tEnd) break;
-    // descend from the root to the leaf holding the point
     vec3 q = clamp(ot + t * dt, 0.0, 0.9999999);
-    int node = 0;
-    float cube = 1.0;
+    ivec3 cell = ivec3(q * CELLS);  // exact: q < 1 has at most 24 significant bits below 1
+    ivec3 diff = cell ^ leafCell;
+    int level = leafCell.x < 0 ? 0 : min(leafLevel, MAX_LEVELS - 1 - highestBit(diff.x | diff.y | diff.z));
+    int node = path[level];
     int slot = 0;
-    for (int level = 0; level < 24; level++) {
-      q *= 2.0;
-      cube *= 2.0;
-      ivec3 ii = clamp(ivec3(floor(q)), 0, 1);
-      q -= vec3(ii);
+    for (; level < MAX_LEVELS; ) {
+      ivec3 ii = (cell >> (MAX_LEVELS - 1 - level)) & 1;
       slot = node * 8 + ii.x * 4 + ii.y * 2 + ii.z;
+      level++;
       int skip = childAt(slot);
       if (skip == 0) break;
       node += skip;
+      path[level] = node;
     }
+    leafCell = cell;
+    leafLevel = level - 1;
+    float cube = float(1 << level);
+    vec3 ql = fract(q * cube);  // the point inside its leaf, in units of the leaf
     float delta = 1.0e9;
     for (int a = 0; a < 3; a++) {
-      if (dt[a] > 0.0) delta = min(delta, (1.0 - q[a]) / dt[a]);
-      else if (dt[a] < 0.0) delta = min(delta, -q[a] / dt[a]);
+      if (dt[a] > 0.0) delta = min(delta, (1.0 - ql[a]) / dt[a]);
+      else if (dt[a] < 0.0) delta = min(delta, -ql[a] / dt[a]);
     }
     delta /= cube;
-    vec4 last = dataAt(slot, sigIndex / 4);
-    float sigma = last[sigIndex % 4];
+    vec4 last = dataAt(slot, ${sigIndex >> 2});
+    float sigma = last.${'xyzw'[sigIndex & 3]};
     if (sigma > uSigmaThresh) {
       float att = exp(-delta * toWorld * sigma);
       float w = T * (1.0 - att);
-      vec3 s = vec3(0.0);
-      for (int tx = 0; tx < TPS; tx++) {
-        vec4 v = dataAt(slot, tx);
-        for (int c = 0; c < 4; c++) {
-          int idx = tx * 4 + c;
-          if (idx >= sigIndex) break;
-          int ch = idx / uNumBasis;
-          int k = idx - ch * uNumBasis;
-          if (k >= uBasisMin && k < uBasisMax) s[ch] += basis[k] * v[c];
-        }
-      }
+      vec3 s;
+${shColourSource(nb)}
       acc += w / (1.0 + exp(-s));
       dep += w * (t + 0.5 * delta) * toWorld;
       T *= att;

@@ -3,7 +3,7 @@
 // submodels, and the deferred MLP interpolated at the camera position on the CPU every frame.
 import {ViewerError, bindTextures, mat3ColumnMajor, byteArrayTexture, createProgram, drawFullscreen, fetchBytes, fetchJSON,
         texture3D} from './gl.js';
-import {smerfFragment} from './smerf_shader.js';
+import {mlpLayout, packMlp, smerfFragment} from './smerf_shader.js';
 
 // viewer frame <-> training frame: (x', y', z') = (-x, z, y); its own inverse
 const toTrain = (p) => [-p[0], p[2], p[1]];
@@ -135,42 +135,42 @@ export class SmerfScene {
 
   program(sm) {
     const p = sm.params;
-    const inDim = this.mlp.inDim;
-    const hidden = this.mlp.hidden;
-    const q = hidden / 4;
-    const layout = {K0_OFF: 0};
-    layout.K1_OFF = inDim * q;
-    layout.K2_OFF = layout.K1_OFF + hidden * q;
-    layout.B0_OFF = layout.K2_OFF + hidden;
-    layout.B1_OFF = layout.B0_OFF + q;
-    layout.B2_OFF = layout.B1_OFF + q;
+    const gl = this.gl;
+    const layout = mlpLayout(this.mlp.inDim, this.mlp.hidden);
     const defs = {
-      IN_DIM: inDim, HIDDEN: hidden, COARSE_SUM: (p.merge_features_combine_op || 'coarse_sum') === 'coarse_sum' ? 1 : 0,
+      IN_DIM: layout.inDim, HIDDEN: layout.hidden, COARSE_SUM: (p.merge_features_combine_op || 'coarse_sum') === 'coarse_sum' ? 1 : 0,
       FEATURE_GATING: p.feature_gating === false ? 0 : 1, ACTIVATION_ELU: (p.activation || 'elu') === 'elu' ? 1 : 0,
-      USE_EXPOSURE: this.exposure(p) ? 1 : 0, ...layout,
+      USE_EXPOSURE: this.exposure(p) ? 1 : 0, MLP_VEC4S: layout.vec4s,
+      // the weights as a uniform block where it fits (every WebGL2 device allows 16 KiB: hidden widths up to 32)
+      MLP_IN_UBO: layout.vec4s * 16 <= gl.getParameter(gl.MAX_UNIFORM_BLOCK_SIZE) ? 1 : 0,
     };
     const key = JSON.stringify(defs);
-    if (!this.programs.has(key)) this.programs.set(key, {prog: createProgram(this.gl, smerfFragment(defs)), layout});
+    if (!this.programs.has(key)) {
+      const prog = createProgram(gl, smerfFragment(defs));
+      if (defs.MLP_IN_UBO) gl.uniformBlockBinding(prog.prog, gl.getUniformBlockIndex(prog.prog, 'MlpBlock'), 0);
+      this.programs.set(key, {prog, layout, ubo: defs.MLP_IN_UBO});
+    }
     return this.programs.get(key);
   }
 
   exposure(p) { return p.default_exposure || this.exposureOverride || null; }
 
-  uploadMlp(idx, position, layout) {
+  uploadMlp(idx, position, program) {
     const w = interpolateMlp(this.mlp, this.first, idx, position, this.center(idx));
-    const {inDim, hidden} = this.mlp;
-    const q = hidden / 4;
-    const texels = layout.B2_OFF + 1;
-    const buf = new Float32Array(texels * 4);
-    for (let i = 0; i < inDim; i++) for (let j = 0; j < hidden; j++) buf[(layout.K0_OFF + i * q) * 4 + j] = w[0].k[i * hidden + j];
-    for (let i = 0; i < hidden; i++) for (let j = 0; j < hidden; j++) buf[(layout.K1_OFF + i * q) * 4 + j] = w[1].k[i * hidden + j];
-    for (let i = 0; i < hidden; i++) for (let j = 0; j < 3; j++) buf[(layout.K2_OFF + i) * 4 + j] = w[2].k[i * 3 + j];
-    for (let j = 0; j < hidden; j++) buf[layout.B0_OFF * 4 + j] = w[0].b[j];
-    for (let j = 0; j < hidden; j++) buf[layout.B1_OFF * 4 + j] = w[1].b[j];
-    for (let j = 0; j < 3; j++) buf[layout.B2_OFF * 4 + j] = w[2].b[j];
+    const buf = packMlp(program.layout, w);
     const gl = this.gl;
+    if (program.ubo) {
+      if (!this.mlpBuffer) this.mlpBuffer = gl.createBuffer();
+      gl.bindBuffer(gl.UNIFORM_BUFFER, this.mlpBuffer);
+      gl.bufferData(gl.UNIFORM_BUFFER, buf, gl.DYNAMIC_DRAW);
+      gl.bindBufferBase(gl.UNIFORM_BUFFER, 0, this.mlpBuffer);
+      return;
+    }
+    const n = program.layout.vec4s, width = Math.min(n, 1024), rows = Math.ceil(n / 1024);
+    const padded = new Float32Array(width * rows * 4);
+    padded.set(buf);
     gl.bindTexture(gl.TEXTURE_2D, this.mlpTex);
-    gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32F, texels, 1, 0, gl.RGBA, gl.FLOAT, buf);
+    gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32F, width, rows, 0, gl.RGBA, gl.FLOAT, padded);
     gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
     gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
   }
@@ -181,9 +181,10 @@ export class SmerfScene {
     const gl = this.gl;
     const sm = this.slots[this.active];
     const p = sm.params;
-    const {prog, layout} = this.program(sm);
+    const program = this.program(sm);
+    const prog = program.prog;
     gl.useProgram(prog.prog);
-    this.uploadMlp(sm.idx, camera.position, layout);
+    this.uploadMlp(sm.idx, camera.position, program);
     const u = prog.uniforms;
     const scale = p.submodel_scale;
     const c = this.center(sm.idx);
@@ -208,11 +209,9 @@ export class SmerfScene {
     gl.uniform1i(u.uGrid8, sm.grid8);
     const T3 = gl.TEXTURE_3D, TA = gl.TEXTURE_2D_ARRAY;
     bindTextures(gl, prog, [
-      ['tBlockIndices', T3, sm.tex.blockIndices], ['tAtlasRgb', T3, sm.tex.atlasRgb],
-      ['tAtlasDensity', T3, sm.tex.atlasDensity], ['tAtlasFeatures', T3, sm.tex.atlasFeatures],
-      ['tPlaneRgb', TA, sm.tex.planeRgb], ['tPlaneDensity', TA, sm.tex.planeDensity],
-      ['tPlaneFeatures', TA, sm.tex.planeFeatures], ['tOccupancy8', T3, sm.tex.occupancy8],
-      ['tDistance8', T3, sm.tex.distance8], ['tMlp', gl.TEXTURE_2D, this.mlpTex],
+      ['tBlockIndices', T3, sm.tex.blockIndices], ['tAtlasA', T3, sm.tex.atlasA], ['tAtlasB', T3, sm.tex.atlasB],
+      ['tPlaneA', TA, sm.tex.planeA], ['tPlaneB', TA, sm.tex.planeB], ['tGrid8', T3, sm.tex.grid8],
+      ['tMlp', gl.TEXTURE_2D, this.mlpTex],
     ]);
     drawFullscreen(gl, target, width, height);
     return true;
@@ -227,9 +226,13 @@ export class SmerfScene {
     return {position: f.position.slice(), rotation, invProjection: invert4(f.projection)};
   }
 
-  gpuBytes() { return this.slots.filter((s) => s).reduce((a, s) => a + s.bytes, 0); }
+  // bytes of the resident submodels' textures as allocated (RGBA8 where repacked)
+  gpuBytes() { return this.slots.filter((s) => s).reduce((a, s) => a + s.textureBytes, 0); }
 }
 
+// One submodel's textures. The baked arrays are repacked so that a ray step's fetches come together: the atlas as
+// (density, gate, r, g) + (b, features), the triplanes as (density, rgb) + features, the factor-8 grids as
+// (distance, occupancy). Interleaving bytes changes no value the shader reads.
 class GpuSubmodel {
   constructor(gl, idx, data) {
     this.gl = gl;
@@ -241,20 +244,46 @@ class GpuSubmodel {
     this.numBlocks = nb;
     this.grid8 = Math.ceil(t / 8);
     const [aw, ah, ad] = [p.atlas_width, p.atlas_height, p.atlas_depth];
+    const [atlasA, atlasB] = interleave([[concat(data.atlas.density), 2], [concat(data.atlas.rgb), 3], [concat(data.atlas.features), 3]]);
+    const [planeA] = interleave([[concat(data.planes.density), 1], [concat(data.planes.rgb), 3]]);
+    const [grid8] = interleave([[data.distance8, 1], [data.occupancy8, 1]], 2);
+    const g8 = this.grid8;
     this.tex = {
       blockIndices: texture3D(gl, nb, nb, nb, 3, false, data.blockIndices),
-      atlasRgb: texture3D(gl, aw, ah, ad, 3, true, data.atlas.rgb),
-      atlasDensity: texture3D(gl, aw, ah, ad, 2, true, data.atlas.density),
-      atlasFeatures: texture3D(gl, aw, ah, ad, 3, true, data.atlas.features),
-      planeRgb: byteArrayTexture(gl, t, t, 3, 3, data.planes.rgb, true),
-      planeDensity: byteArrayTexture(gl, t, t, 3, 1, data.planes.density, true),
-      planeFeatures: byteArrayTexture(gl, t, t, 3, 4, data.planes.features, true),
-      occupancy8: texture3D(gl, this.grid8, this.grid8, this.grid8, 1, false, data.occupancy8),
-      distance8: texture3D(gl, this.grid8, this.grid8, this.grid8, 1, false, data.distance8),
+      atlasA: texture3D(gl, aw, ah, ad, 4, true, atlasA),
+      atlasB: texture3D(gl, aw, ah, ad, 4, true, atlasB),
+      planeA: byteArrayTexture(gl, t, t, 3, 4, planeA, true),
+      planeB: byteArrayTexture(gl, t, t, 3, 4, concat(data.planes.features), true),
+      grid8: texture3D(gl, g8, g8, g8, 2, false, grid8),
     };
     this.bytes = data.bytes;
+    this.textureBytes = nb ** 3 * 4 + 2 * aw * ah * ad * 4 + 2 * 3 * t * t * 4 + g8 ** 3 * 2;
   }
   dispose() { for (const t of Object.values(this.tex)) this.gl.deleteTexture(t); }
+}
+
+function concat(parts) {
+  if (!Array.isArray(parts)) return parts;
+  const out = new Uint8Array(parts.reduce((a, p) => a + p.length, 0));
+  let o = 0;
+  for (const part of parts) { out.set(part, o); o += part.length; }
+  return out;
+}
+
+// [[bytes, channels], ...] of equally many texels -> texels of `width` channels, in order, as many as needed.
+function interleave(sources, width = 4) {
+  const n = sources[0][0].length / sources[0][1];
+  const total = sources.reduce((a, [, c]) => a + c, 0);
+  const outs = [...Array(Math.ceil(total / width))].map(() => new Uint8Array(n * width));
+  let ch = 0;
+  for (const [bytes, c] of sources) {
+    if (bytes.length !== n * c) throw new ViewerError(`asset arrays disagree in size (${bytes.length} vs ${n * c} bytes)`);
+    for (let k = 0; k < c; k++, ch++) {
+      const out = outs[Math.floor(ch / width)], oc = ch % width;
+      for (let i = 0; i < n; i++) out[i * width + oc] = bytes[i * c + k];
+    }
+  }
+  return outs;
 }
 
 function smName(sm) { return `sm_${String(sm).padStart(3, '0')}`; }
@@ -293,12 +322,8 @@ async function fetchSubmodel(base, name, params, onProgress) {
   const grid8 = async (kind) => {
     const first = meta.get(`${kind}_grid_8_000.raw.gz`);
     if (!first) throw new ViewerError(`${name}: needs ${kind}_grid_8 (the factor-8 grid the renderer uses)`);
-    const parts = await Promise.all([...Array(first.slice_count || 1).keys()].map(
-      (i) => get(`${kind}_grid_8_${String(i).padStart(3, '0')}.raw.gz`)));
-    const out = new Uint8Array(parts.reduce((a, p) => a + p.length, 0));
-    let o = 0;
-    for (const part of parts) { out.set(part, o); o += part.length; }
-    return out;
+    return concat(await Promise.all([...Array(first.slice_count || 1).keys()].map(
+      (i) => get(`${kind}_grid_8_${String(i).padStart(3, '0')}.raw.gz`))));
   };
   const [blockIndices, rgb, density, features, prgb, pdensity, pfeatures, occupancy8, distance8] = await Promise.all([
     get('sparse_grid_block_indices.raw.gz'), slices('rgb'), slices('density'), slices('features'),

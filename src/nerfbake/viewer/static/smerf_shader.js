@@ -1,6 +1,72 @@
 // Fragment shader of the SMERF renderer. It follows docs/smerf_viewer.md step for step, in the same order as the
 // Python/Warp re-implementation (src/nerfbake/kernels/smerf_march.py) that the tests compare it with.
 
+// The deferred MLP's weights as vec4s: biases first, then 4x4 blocks (mat4, column c = input 4g+c, row r = output
+// 4j+r) of each layer; the first layer's inputs are padded to a multiple of 4. The shader is straight-line code
+// with constant indices (no loops or arrays), which SwiftShader and mobile compilers run much faster than the
+// per-weight texelFetch loop it replaced.
+export function mlpLayout(inDim, hidden) {
+  const g = Math.ceil(inDim / 4), q = hidden / 4;
+  const bias = [0, q, 2 * q];  // vec4 offsets of b0, b1, b2
+  const k0 = 2 * q + 1, k1 = k0 + 4 * g * q, k2 = k1 + 4 * q * q;
+  return {inDim, hidden, g, q, bias, k0, k1, k2, vec4s: k2 + 4 * q};
+}
+
+// weights: [{k: Float64Array(nin*nout) row-major [in][out], b: (nout)}] x 3 -> Float32Array(vec4s * 4)
+export function packMlp(layout, weights) {
+  const {g, q, hidden} = layout;
+  const buf = new Float32Array(layout.vec4s * 4);
+  const [w0, w1, w2] = weights;
+  for (let j = 0; j < hidden; j++) { buf[layout.bias[0] * 4 + j] = w0.b[j]; buf[layout.bias[1] * 4 + j] = w1.b[j]; }
+  for (let j = 0; j < 3; j++) buf[layout.bias[2] * 4 + j] = w2.b[j];
+  const block = (base, w, nin, nout, bi, bj, nbj) => {
+    const off = (base + 4 * (bi * nbj + bj)) * 4;
+    for (let c = 0; c < 4; c++) {
+      for (let r = 0; r < 4; r++) {
+        const i = 4 * bi + c, o = 4 * bj + r;
+        if (i < nin && o < nout) buf[off + c * 4 + r] = w.k[i * nout + o];
+      }
+    }
+  };
+  for (let bi = 0; bi < g; bi++) for (let bj = 0; bj < q; bj++) block(layout.k0, w0, layout.inDim, hidden, bi, bj, q);
+  for (let bi = 0; bi < q; bi++) for (let bj = 0; bj < q; bj++) block(layout.k1, w1, hidden, hidden, bi, bj, q);
+  for (let bi = 0; bi < q; bi++) block(layout.k2, w2, hidden, 3, bi, 0, 1);
+  return buf;
+}
+
+function mlpSource(defs) {
+  const L = mlpLayout(defs.IN_DIM, defs.HIDDEN);
+  const vec = (i) => (defs.MLP_IN_UBO ? `uMlp[${i}]` : `texelFetch(tMlp, ivec2(${i % 1024}, ${Math.floor(i / 1024)}), 0)`);
+  const mat = (i) => `mat4(${vec(i)}, ${vec(i + 1)}, ${vec(i + 2)}, ${vec(i + 3)})`;
+  // the inputs in the trained order: colour, features, (coarse colour, coarse features,) direction, sin, cos
+  const x = ['e0.x', 'e0.y', 'e0.z', 'e1.x', 'e1.y', 'e1.z', 'e1.w'];
+  if (defs.COARSE_SUM) x.push('e2.x', 'e2.y', 'e2.z', 'e3.x', 'e3.y', 'e3.z', 'e3.w');
+  x.push('v.x', 'v.y', 'v.z');
+  for (const f of ['s', 'c']) for (let k = 0; k < 4; k++) x.push(`${f}${k}.x`, `${f}${k}.y`, `${f}${k}.z`);
+  if (x.length !== L.inDim) throw new Error(`MLP input layout has ${x.length} entries, the weights ${L.inDim}`);
+  while (x.length % 4) x.push('0.0');
+  const lines = [];
+  for (let i = 0; i < L.g; i++) lines.push(`  vec4 x${i} = vec4(${x.slice(4 * i, 4 * i + 4).join(', ')});`);
+  for (let j = 0; j < L.q; j++) {
+    const terms = [...Array(L.g).keys()].map((i) => `${mat(L.k0 + 4 * (i * L.q + j))} * x${i}`);
+    lines.push(`  vec4 h${j} = act4(${vec(L.bias[0] + j)} + ${terms.join(' + ')});`);
+  }
+  for (let j = 0; j < L.q; j++) {
+    const terms = [...Array(L.q).keys()].map((i) => `${mat(L.k1 + 4 * (i * L.q + j))} * h${i}`);
+    lines.push(`  vec4 u${j} = act4(${vec(L.bias[1] + j)} + ${terms.join(' + ')});`);
+  }
+  const out = [...Array(L.q).keys()].map((i) => `${mat(L.k2 + 4 * i)} * u${i}`);
+  lines.push(`  vec4 o = ${vec(L.bias[2])} + ${out.join(' + ')};`);
+  return `// The deferred MLP (SNeRG mode): kernels and biases were interpolated at the camera position on the CPU.
+vec3 deferredMlp(vec3 cIn, vec4 feat, vec3 coarseColor, vec4 coarseFeat, vec3 v) {
+  vec4 e0 = expo(vec4(cIn, 0.0)), e1 = expo(feat), e2 = expo(vec4(coarseColor, 0.0)), e3 = expo(coarseFeat);
+  vec3 s0 = sin(v), s1 = sin(2.0 * v), s2 = sin(4.0 * v), s3 = sin(8.0 * v);
+  vec3 c0 = cos(v), c1 = cos(2.0 * v), c2 = cos(4.0 * v), c3 = cos(8.0 * v);
+${lines.join('\n')}
+  return sigmoid3(o.xyz);
+}`;
+}
+
 export function smerfFragment(defs) {
   const lines = Object.entries(defs).map(([k, v]) => `#define ${k} ${v}`).join('\n');
   return `#version 300 es
@@ -32,46 +98,43 @@ uniform vec3 uAtlasSize;
 uniform int uNumBlocks;
 uniform int uGrid8;
 
+// The baked arrays repacked at upload so that one fetch serves what a step needs together (smerf.js: GpuSubmodel):
 uniform sampler3D tBlockIndices;
-uniform sampler3D tAtlasRgb;
-uniform sampler3D tAtlasDensity;
-uniform sampler3D tAtlasFeatures;
-uniform sampler2DArray tPlaneRgb;
-uniform sampler2DArray tPlaneDensity;
-uniform sampler2DArray tPlaneFeatures;
-uniform sampler3D tOccupancy8;
-uniform sampler3D tDistance8;
-uniform sampler2D tMlp;
+uniform sampler3D tAtlasA;         // sparse density, gate, r, g
+uniform sampler3D tAtlasB;         // b, features 0..2
+uniform sampler2DArray tPlaneA;    // triplane density, r, g, b
+uniform sampler2DArray tPlaneB;    // triplane features 0..3
+uniform sampler3D tGrid8;          // factor-8 distance (cells) and occupancy bits
+${defs.MLP_IN_UBO ? 'layout(std140) uniform MlpBlock { vec4 uMlp[MLP_VEC4S]; };' : 'uniform sampler2D tMlp;'}
 
 const float INF = 1.0e25;
 
-int majorAxis(vec3 v) {
-  vec3 a = abs(v);
-  if (a.x >= a.y && a.x >= a.z) return 0;
-  if (a.y >= a.x && a.y >= a.z) return 1;
-  return 2;
+// One-hot mask of the largest |component| (ties to the first): selects instead of dynamic vector indexing, which
+// SwiftShader and many mobile compilers turn into memory accesses.
+bvec3 majorMask(vec3 a) {
+  bool x = a.x >= a.y && a.x >= a.z;
+  bool y = !x && a.y >= a.z;
+  return bvec3(x, y, !x && !y);
 }
 
 float maxAbs(vec3 v) { return max(abs(v.x), max(abs(v.y), abs(v.z))); }
 
 vec3 contract(vec3 x) {
-  float m = maxAbs(x);
+  vec3 a = abs(x);
+  float m = max(a.x, max(a.y, a.z));
   if (m <= 1.0) return x;
   float s = 1.0 / m;
   vec3 z = s * x;
-  int a = majorAxis(x);
-  z[a] = z[a] * (2.0 - s);
-  return z;
+  return mix(z, z * (2.0 - s), majorMask(a));
 }
 
 vec3 uncontract(vec3 z) {
-  float m = maxAbs(z);
+  vec3 a = abs(z);
+  float m = max(a.x, max(a.y, a.z));
   if (m <= 1.0) return z;
   float s = 1.0 / max(1.0e-6, 2.0 - m);
   vec3 x = s * z;
-  int a = majorAxis(z);
-  x[a] = sign(x[a]) * s;
-  return x;
+  return mix(x, sign(x) * s, majorMask(a));
 }
 
 // Per axis A, the t where contract(o + t d)[A] == p[A] inside region k (0 core, 1..6 = +x,+y,+z,-x,-y,-z).
@@ -96,23 +159,29 @@ void regionBox(int k, out vec3 lo, out vec3 hi) {
   float c2 = 2.0 - 1.0e-4;
   lo = vec3(-c1);
   hi = vec3(c1);
-  if (k >= 1 && k <= 3) { lo[k - 1] = c1; hi[k - 1] = c2; }
-  else if (k >= 4) { lo[k - 4] = -c2; hi[k - 4] = -c1; }
+  if (k >= 1 && k <= 3) {
+    bvec3 m = equal(ivec3(k - 1), ivec3(0, 1, 2));
+    lo = mix(lo, vec3(c1), m);
+    hi = mix(hi, vec3(c2), m);
+  } else if (k >= 4) {
+    bvec3 m = equal(ivec3(k - 4), ivec3(0, 1, 2));
+    lo = mix(lo, vec3(-c2), m);
+    hi = mix(hi, vec3(-c1), m);
+  }
+}
+
+// t if contract(o + t d) lands on the plane (one-hot axis, at p) inside the region's box, else -INF.
+float checkedAxis(vec3 o, vec3 d, float t, vec3 axis, vec3 p, vec3 lo, vec3 hi) {
+  float eps = 1.0e-3;
+  vec3 q = contract(o + t * d);
+  bool bad = abs(dot(q - p, axis)) > eps || any(lessThan(q, lo - eps)) || any(greaterThan(q, hi + eps));
+  return bad ? -INF : t;
 }
 
 // Drop (set to -INF) per-axis solutions that do not land on the plane inside the region's box.
 vec3 checkedT(vec3 o, vec3 d, vec3 t, vec3 p, vec3 lo, vec3 hi) {
-  float eps = 1.0e-3;
-  vec3 outT = t;
-  for (int a = 0; a < 3; a++) {
-    vec3 q = contract(o + t[a] * d);
-    bool bad = abs(q[a] - p[a]) > eps;
-    for (int b = 0; b < 3; b++) {
-      if (q[b] < lo[b] - eps || q[b] > hi[b] + eps) bad = true;
-    }
-    if (bad) outT[a] = -INF;
-  }
-  return outT;
+  return vec3(checkedAxis(o, d, t.x, vec3(1.0, 0.0, 0.0), p, lo, hi), checkedAxis(o, d, t.y, vec3(0.0, 1.0, 0.0), p, lo, hi),
+              checkedAxis(o, d, t.z, vec3(0.0, 0.0, 1.0), p, lo, hi));
 }
 
 float regionExit(vec3 o, vec3 d, int k) {
@@ -131,17 +200,21 @@ vec2 slab(vec3 lo, vec3 hi, vec3 o, vec3 invD) {
   return vec2(max(max(mn.x, mn.y), mn.z), min(min(mx.x, mx.y), mx.z));
 }
 
-struct Quadrant { vec3 oc; vec3 dc; float tmin; float tmax; };
+// core: the quadrant is the unit box, where contraction is the identity (world steps are contracted steps).
+struct Quadrant { vec3 oc; vec3 dc; float tmin; float tmax; bool core; };
 
 Quadrant quadrantSetup(vec3 o, vec3 d, float tp, float tq) {
   vec3 xp = o + tp * d;
   vec3 lo = vec3(-1.0);
   vec3 hi = vec3(1.0);
-  if (maxAbs(xp) > 1.0) {
-    int a = majorAxis(xp);
-    if (xp[a] > 0.0) { lo[a] = 1.0; hi[a] = 2.0; } else { lo[a] = -2.0; hi[a] = -1.0; }
-  }
   Quadrant q;
+  q.core = maxAbs(xp) <= 1.0;
+  if (!q.core) {
+    bvec3 m = majorMask(abs(xp));
+    bool pos = dot(xp, vec3(m)) > 0.0;
+    lo = mix(lo, vec3(pos ? 1.0 : -2.0), m);
+    hi = mix(hi, vec3(pos ? 2.0 : -1.0), m);
+  }
   q.oc = contract(xp);
   q.dc = normalize(contract(o + tq * d) - q.oc);
   vec2 t = slab(lo, hi, q.oc, 1.0 / q.dc);
@@ -150,9 +223,10 @@ Quadrant quadrantSetup(vec3 o, vec3 d, float tp, float tq) {
   return q;
 }
 
-float texel8(sampler3D grid, vec3 c) {
+// (distance in cells, occupancy bits) of the factor-8 cell holding grid position c
+vec2 grid8(vec3 c) {
   ivec3 i = clamp(ivec3(floor(c)), ivec3(0), ivec3(uGrid8 - 1));
-  return floor(texelFetch(grid, i, 0).r * 255.0 + 0.5);
+  return floor(texelFetch(tGrid8, i, 0).rg * 255.0 + 0.5);
 }
 
 vec4 planeSum(sampler2DArray tex, vec3 p) {
@@ -163,55 +237,24 @@ float sigmoid(float x) { return 1.0 / (1.0 + exp(-x)); }
 vec3 sigmoid3(vec3 x) { return 1.0 / (1.0 + exp(-x)); }
 vec4 sigmoid4(vec4 x) { return 1.0 / (1.0 + exp(-x)); }
 
-float act(float x) {
+vec4 act4(vec4 x) {
 #if ACTIVATION_ELU
-  return x > 0.0 ? x : exp(x) - 1.0;
+  return mix(exp(min(x, 0.0)) - 1.0, x, greaterThan(x, vec4(0.0)));
 #else
   return max(x, 0.0);
 #endif
 }
 
-float expo(float x) {
+vec4 expo(vec4 x) {
 #if USE_EXPOSURE
-  float c = clamp(x, 1.0e-7, 1.0 - 1.0e-7);
+  vec4 c = clamp(x, 1.0e-7, 1.0 - 1.0e-7);
   return log(c / (1.0 - c)) + log(uExposure);
 #else
   return x;
 #endif
 }
 
-vec4 mlpTexel(int i) { return texelFetch(tMlp, ivec2(i, 0), 0); }
-
-// The deferred MLP (SNeRG mode): kernels and biases were interpolated at the camera position on the CPU.
-vec3 deferredMlp(vec3 cIn, vec4 feat, vec3 coarseColor, vec4 coarseFeat, vec3 v) {
-  float x[IN_DIM];
-  int n = 0;
-  for (int c = 0; c < 3; c++) x[n++] = expo(cIn[c]);
-  for (int c = 0; c < 4; c++) x[n++] = expo(feat[c]);
-#if COARSE_SUM
-  for (int c = 0; c < 3; c++) x[n++] = expo(coarseColor[c]);
-  for (int c = 0; c < 4; c++) x[n++] = expo(coarseFeat[c]);
-#endif
-  for (int c = 0; c < 3; c++) x[n++] = v[c];
-  for (int k = 0; k < 4; k++) for (int c = 0; c < 3; c++) x[n++] = sin(v[c] * float(1 << k));
-  for (int k = 0; k < 4; k++) for (int c = 0; c < 3; c++) x[n++] = cos(v[c] * float(1 << k));
-
-  const int Q = HIDDEN / 4;
-  vec4 h0[Q];
-  for (int j = 0; j < Q; j++) h0[j] = mlpTexel(B0_OFF + j);
-  for (int i = 0; i < IN_DIM; i++) {
-    for (int j = 0; j < Q; j++) h0[j] += x[i] * mlpTexel(K0_OFF + i * Q + j);
-  }
-  vec4 h1[Q];
-  for (int j = 0; j < Q; j++) h1[j] = mlpTexel(B1_OFF + j);
-  for (int i = 0; i < HIDDEN; i++) {
-    float a = act(h0[i / 4][i % 4]);
-    for (int j = 0; j < Q; j++) h1[j] += a * mlpTexel(K1_OFF + i * Q + j);
-  }
-  vec4 o = mlpTexel(B2_OFF);
-  for (int i = 0; i < HIDDEN; i++) o += act(h1[i / 4][i % 4]) * mlpTexel(K2_OFF + i);
-  return sigmoid3(o.xyz);
-}
+${mlpSource(defs)}
 
 void main() {
   vec2 pix = gl_FragCoord.xy + uPixelOffset;
@@ -220,9 +263,7 @@ void main() {
   vec3 d = uScale * (uRotation * (q4.xyz / q4.w));  // to the near plane: the ray starts at t = 1
   vec3 viewDir = d;
   vec3 o = uOrigin;
-  for (int a = 0; a < 3; a++) {
-    if (abs(d[a]) < 1.0e-9) d[a] = 1.0e-9;
-  }
+  d = mix(d, vec3(1.0e-9), lessThan(abs(d), vec3(1.0e-9)));
   float nearT = 1.0;
   float exits[8];
   for (int j = 0; j < 8; j++) exits[j] = INF;
@@ -253,6 +294,10 @@ void main() {
   float rf = uRangeFeatures.y - uRangeFeatures.x;
   float rd = uRangeDensity.y - uRangeDensity.x;
   float b = uBlock;
+  ivec3 lastBlock = ivec3(-1);
+  vec3 blockAtlas = vec3(255.0);
+  float tWorld = -INF;  // uncontract(q.oc + tWorld q.dc) of the last step's end, reused as the next step's start
+  vec3 world = vec3(0.0);
   for (int i = 0; i < maxSteps; i++) {
     if (vis <= 1.0 / 255.0) break;
     ema = uVisibilityDelay * ema + (1.0 - uVisibilityDelay) * vis;
@@ -270,17 +315,18 @@ void main() {
       tc = q.tmin + 0.5 * stepLen;
       qi++;
       tBlock = -INF;
+      tWorld = -INF;
     }
     vec3 z = q.oc + tc * q.dc;
-    // 1. distance grid: jump whole empty cells
-    float dist = texel8(tDistance8, (z - minP) / vsGrid) * vsGrid;
-    if (dist > 0.0) { tc += dist; continue; }
+    // 1. distance grid: jump whole empty cells (one fetch also brings the cell's occupancy bits)
+    vec3 pos = (z - minP) / vsGrid;
+    vec2 cell = grid8(pos);
+    if (cell.x > 0.0) { tc += cell.x * vsGrid; continue; }
     // 2. bit-packed occupancy (exit of the last queried cell cached)
     if (tc > tBlock) {
-      vec3 pos = (z - minP) / vsGrid;
       vec3 bmin = floor(pos);
       vec3 bmax = bmin + 1.0;
-      int occ = int(texel8(tOccupancy8, bmin));
+      int occ = int(cell.y);
       bool empty = occ == 0;
       if (!empty) {
         vec3 rel = pos - bmin;
@@ -294,20 +340,24 @@ void main() {
       tBlock = slab(bmin * vsGrid + minP, bmax * vsGrid + minP, q.oc, 1.0 / q.dc).y;
       if (empty) { tc = max(tc, tBlock) + 0.5 * stepLen; continue; }
     }
-    // 3. the sparse grid's 8^3 block, then the atlas
+    // 3. the sparse grid's 8^3 block (its atlas index cached while the ray stays in it), then the atlas
     vec3 g = (z - minP) / uSparseVoxel - 0.5;
     vec3 blockMin = floor(g / b) * b;
     ivec3 bi = clamp(ivec3(blockMin / b), ivec3(0), ivec3(uNumBlocks - 1));
-    vec3 idxRaw = texelFetch(tBlockIndices, bi, 0).rgb * 255.0;
-    if (idxRaw.x > 254.5) { tc += stepLen; continue; }
-    vec3 idx = floor(idxRaw + 0.5);
+    if (bi != lastBlock) {
+      lastBlock = bi;
+      blockAtlas = texelFetch(tBlockIndices, bi, 0).rgb * 255.0;
+    }
+    if (blockAtlas.x > 254.5) { tc += stepLen; continue; }
+    vec3 idx = floor(blockAtlas + 0.5);
     vec3 s = clamp(g - blockMin, 0.0, b) + idx * (b + 1.0);
     vec3 uvw = (s + 0.5) / uAtlasSize;
-    vec2 dg = texture(tAtlasDensity, uvw).rg;
-    float sd = uRangeDensity.x + rd * dg.x;
-    float gate = uRangeFeatures.x + rf * dg.y;
+    vec4 atlasA = texture(tAtlasA, uvw);
+    float sd = uRangeDensity.x + rd * atlasA.x;
+    float gate = uRangeFeatures.x + rf * atlasA.y;
     vec3 pt = (z - minP) / (uTriVoxel * uTriRes);
-    float td = 3.0 * uRangeDensity.x + rd * planeSum(tPlaneDensity, pt).r;
+    vec4 planeA = planeSum(tPlaneA, pt);
+    float td = 3.0 * uRangeDensity.x + rd * planeA.x;
 #if FEATURE_GATING
     float wGate = gate;
 #else
@@ -315,16 +365,25 @@ void main() {
 #endif
     float density = exp(sd + wGate * td - 1.0);
     float tNext = min(tc + stepLen, q.tmax);
-    float stepWorld = length(uncontract(q.oc + tNext * q.dc) - uncontract(z)) / uScale;
+    float stepWorld;
+    if (q.core) {
+      stepWorld = (tNext - tc) / uScale;  // |dc| = 1 and no contraction inside the unit box
+    } else {
+      vec3 wz = tc == tWorld ? world : uncontract(z);
+      world = uncontract(q.oc + tNext * q.dc);
+      tWorld = tNext;
+      stepWorld = length(world - wz) / uScale;
+    }
     float alpha = 1.0 - exp(-density * stepWorld);
     if (alpha > 0.25 / 255.0) {
       float w = vis * alpha;
-      vec3 srgb = uRangeFeatures.x + rf * texture(tAtlasRgb, uvw).rgb;
-      vec3 trgb = 3.0 * uRangeFeatures.x + rf * planeSum(tPlaneRgb, pt).rgb;
+      vec4 atlasB = texture(tAtlasB, uvw);
+      vec3 srgb = uRangeFeatures.x + rf * vec3(atlasA.zw, atlasB.x);
+      vec3 trgb = 3.0 * uRangeFeatures.x + rf * planeA.yzw;
       color += w * sigmoid3(srgb + wGate * trgb);
       coarseColor += w * sigmoid3(srgb);
-      vec4 sf = vec4(uRangeFeatures.x + rf * texture(tAtlasFeatures, uvw).rgb, gate);
-      vec4 tf = 3.0 * uRangeFeatures.x + rf * planeSum(tPlaneFeatures, pt);
+      vec4 sf = vec4(uRangeFeatures.x + rf * atlasB.yzw, gate);
+      vec4 tf = 3.0 * uRangeFeatures.x + rf * planeSum(tPlaneB, pt);
       feat += w * sigmoid4(sf + wGate * tf);
       coarseFeat += w * sigmoid4(sf);
     }

@@ -1,0 +1,375 @@
+// SMERF scenes (ours and the official export alike): submodel choice from the camera position, two GPU-resident
+// submodels (ping-pong: the old one renders until the new one is uploaded), an LRU host cache of decoded
+// submodels, and the deferred MLP interpolated at the camera position on the CPU every frame.
+import {ViewerError, bindTextures, mat3ColumnMajor, byteArrayTexture, createProgram, drawFullscreen, fetchBytes, fetchJSON,
+        texture3D} from './gl.js';
+import {smerfFragment} from './smerf_shader.js';
+
+// viewer frame <-> training frame: (x', y', z') = (-x, z, y); its own inverse
+const toTrain = (p) => [-p[0], p[2], p[1]];
+
+export class SmerfScene {
+  static async open(gl, base, entry, options = {}) {
+    const first = await fetchJSON(`${base}${entry}/scene_params.json`);
+    checkParams(first, entry);
+    const scene = new SmerfScene(gl, base, first, options);
+    const mlpRaw = first.deferred_mlp || await fetchJSON(`${base}${entry}/deferred_mlp.json`);
+    scene.mlp = parseMlp(mlpRaw, entry);
+    // colour, features, (coarse colour, coarse features,) view direction and its sin/cos encoding
+    scene.mlp.inDim = (first.merge_features_combine_op || 'coarse_sum') === 'coarse_sum' ? 41 : 34;
+    if (scene.mlp.layers[0].kshape[4] < scene.mlp.inDim) {
+      throw new ViewerError(`${entry}: deferred MLP's first layer takes ${scene.mlp.layers[0].kshape[4]} inputs, fewer than ${scene.mlp.inDim}`);
+    }
+    try {
+      scene.testFrames = (await fetchJSON(`${base}${entry}/test_frames.json`)).test_frames || [];
+    } catch (e) {
+      scene.testFrames = [];
+    }
+    // Every submodel's scene_params up front (small), as the official viewer does; assets are fetched lazily.
+    scene.params = await Promise.all(first.params_to_sm.map((sm) =>
+      fetchJSON(`${base}${smName(sm)}/scene_params.json`).then((p) => { checkParams(p, smName(sm)); return p; })));
+    return scene;
+  }
+
+  constructor(gl, base, first, options) {
+    this.gl = gl;
+    this.kind = 'smerf';
+    this.base = base;
+    this.first = first;
+    this.cacheSize = options.cacheSize ?? 4;
+    this.stepMult = options.stepMult ?? 1;
+    this.visibilityDelay = options.visibilityDelay ?? 0.99;
+    this.background = options.background ?? [0.5, 0.5, 0.5];
+    this.hostCache = new Map();  // params index -> decoded payload, in least- to most-recently-used order
+    this.slots = [null, null];  // GPU-resident submodels
+    this.active = -1;  // slot index drawn now
+    this.loading = null;  // params index being fetched/uploaded
+    this.stats = {fetches: [], evictions: [], uploads: [], swaps: 0};
+    this.programs = new Map();
+    this.onProgress = options.onProgress || (() => {});
+    this.mlpTex = gl.createTexture();
+  }
+
+  get k() { return Math.round(Math.cbrt(this.first.num_submodels || 1)); }
+
+  submodelForPosition(pos) {
+    const p = this.first;
+    if ((p.num_local_submodels || 1) <= 1) return 0;
+    const k = Math.round(2 / p.submodel_voxel_size);
+    const t = toTrain(pos).map((v) => Math.min(k - 1, Math.max(0, Math.floor((v + 1) / 2 * k))));
+    const idx = p.sm_to_params[(t[0] * k + t[1]) * k + t[2]];
+    return idx >= 0 ? idx : 0;
+  }
+
+  center(paramsIdx) {
+    const p = this.first;
+    if ((p.num_local_submodels || 1) <= 1) return [0, 0, 0];
+    const k = Math.round(2 / p.submodel_voxel_size);
+    const sm = p.params_to_sm[paramsIdx];
+    const ijk = [Math.floor(sm / (k * k)), Math.floor(sm / k) % k, sm % k];
+    return toTrain(ijk.map((v) => (v + 0.5) * p.submodel_voxel_size - 1));
+  }
+
+  // --- streaming ----------------------------------------------------------------------------------------------
+
+  async payload(idx) {
+    if (this.hostCache.has(idx)) {
+      const hit = this.hostCache.get(idx);
+      this.hostCache.delete(idx);
+      this.hostCache.set(idx, hit);  // most recently used
+      return hit;
+    }
+    this.stats.fetches.push(idx);
+    const data = await fetchSubmodel(this.base, smName(this.first.params_to_sm[idx]), this.params[idx], this.onProgress);
+    if (this.cacheSize > 0) {
+      this.hostCache.set(idx, data);
+      while (this.hostCache.size > this.cacheSize) {
+        const oldest = this.hostCache.keys().next().value;
+        this.hostCache.delete(oldest);
+        this.stats.evictions.push(oldest);
+      }
+    }
+    return data;
+  }
+
+  // Called every frame: start loading the camera's submodel into the slot not being drawn; swap once uploaded.
+  update(position) {
+    const want = this.submodelForPosition(position);
+    const cur = this.active >= 0 ? this.slots[this.active] : null;
+    if ((cur && cur.idx === want) || this.loading !== null) return;
+    const other = this.active >= 0 ? 1 - this.active : 0;
+    if (this.slots[other] && this.slots[other].idx === want) {  // still resident from before: swap at once
+      this.active = other;
+      this.stats.swaps++;
+      return;
+    }
+    this.loading = want;
+    this.pending = this.payload(want).then((data) => {
+      if (this.slots[other]) this.slots[other].dispose();
+      this.slots[other] = new GpuSubmodel(this.gl, want, data);
+      this.stats.uploads.push(want);
+      this.active = other;
+      this.stats.swaps++;
+    }).finally(() => { this.loading = null; });
+    this.pending.catch((e) => this.onError && this.onError(e));
+  }
+
+  async ready(position) {
+    this.update(position);
+    while (this.loading !== null) await this.pending.catch(() => {});
+    if (this.active < 0) throw new ViewerError('no submodel could be loaded');
+  }
+
+  residentSubmodels() { return this.slots.filter((s) => s).map((s) => s.idx); }
+
+  state() {
+    return {
+      active: this.active >= 0 ? this.slots[this.active].idx : null, resident: this.residentSubmodels(),
+      loading: this.loading, hostCache: [...this.hostCache.keys()], cacheSize: this.cacheSize,
+      fetches: this.stats.fetches, evictions: this.stats.evictions, uploads: this.stats.uploads,
+      numSubmodels: this.params.length,
+    };
+  }
+
+  // --- drawing ------------------------------------------------------------------------------------------------
+
+  program(sm) {
+    const p = sm.params;
+    const inDim = this.mlp.inDim;
+    const hidden = this.mlp.hidden;
+    const q = hidden / 4;
+    const layout = {K0_OFF: 0};
+    layout.K1_OFF = inDim * q;
+    layout.K2_OFF = layout.K1_OFF + hidden * q;
+    layout.B0_OFF = layout.K2_OFF + hidden;
+    layout.B1_OFF = layout.B0_OFF + q;
+    layout.B2_OFF = layout.B1_OFF + q;
+    const defs = {
+      IN_DIM: inDim, HIDDEN: hidden, COARSE_SUM: (p.merge_features_combine_op || 'coarse_sum') === 'coarse_sum' ? 1 : 0,
+      FEATURE_GATING: p.feature_gating === false ? 0 : 1, ACTIVATION_ELU: (p.activation || 'elu') === 'elu' ? 1 : 0,
+      USE_EXPOSURE: this.exposure(p) ? 1 : 0, ...layout,
+    };
+    const key = JSON.stringify(defs);
+    if (!this.programs.has(key)) this.programs.set(key, {prog: createProgram(this.gl, smerfFragment(defs)), layout});
+    return this.programs.get(key);
+  }
+
+  exposure(p) { return p.default_exposure || this.exposureOverride || null; }
+
+  uploadMlp(idx, position, layout) {
+    const w = interpolateMlp(this.mlp, this.first, idx, position, this.center(idx));
+    const {inDim, hidden} = this.mlp;
+    const q = hidden / 4;
+    const texels = layout.B2_OFF + 1;
+    const buf = new Float32Array(texels * 4);
+    for (let i = 0; i < inDim; i++) for (let j = 0; j < hidden; j++) buf[(layout.K0_OFF + i * q) * 4 + j] = w[0].k[i * hidden + j];
+    for (let i = 0; i < hidden; i++) for (let j = 0; j < hidden; j++) buf[(layout.K1_OFF + i * q) * 4 + j] = w[1].k[i * hidden + j];
+    for (let i = 0; i < hidden; i++) for (let j = 0; j < 3; j++) buf[(layout.K2_OFF + i) * 4 + j] = w[2].k[i * 3 + j];
+    for (let j = 0; j < hidden; j++) buf[layout.B0_OFF * 4 + j] = w[0].b[j];
+    for (let j = 0; j < hidden; j++) buf[layout.B1_OFF * 4 + j] = w[1].b[j];
+    for (let j = 0; j < 3; j++) buf[layout.B2_OFF * 4 + j] = w[2].b[j];
+    const gl = this.gl;
+    gl.bindTexture(gl.TEXTURE_2D, this.mlpTex);
+    gl.texImage2D(gl.TEXTURE_2D, 0, gl.RGBA32F, texels, 1, 0, gl.RGBA, gl.FLOAT, buf);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MIN_FILTER, gl.NEAREST);
+    gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
+  }
+
+  // camera: {position, rotation (3x3 row-major array of rows), invProjection (16, column-major)}
+  draw(camera, target, width, height, jitter = [0, 0]) {
+    if (this.active < 0) return false;
+    const gl = this.gl;
+    const sm = this.slots[this.active];
+    const p = sm.params;
+    const {prog, layout} = this.program(sm);
+    gl.useProgram(prog.prog);
+    this.uploadMlp(sm.idx, camera.position, layout);
+    const u = prog.uniforms;
+    const scale = p.submodel_scale;
+    const c = this.center(sm.idx);
+    gl.uniform2f(u.uViewport, width, height);
+    gl.uniform2f(u.uPixelOffset, jitter[0], jitter[1]);
+    gl.uniform3f(u.uOrigin, scale * (camera.position[0] - c[0]), scale * (camera.position[1] - c[1]), scale * (camera.position[2] - c[2]));
+    gl.uniformMatrix3fv(u.uRotation, false, mat3ColumnMajor(camera.rotation));
+    gl.uniformMatrix4fv(u.uInvProjection, false, camera.invProjection);
+    gl.uniform1f(u.uScale, scale);
+    gl.uniform1f(u.uStepMult, this.stepMult);
+    gl.uniform1f(u.uVisibilityDelay, this.visibilityDelay);
+    gl.uniform3fv(u.uBackground, this.background);
+    gl.uniform1f(u.uExposure, this.exposure(p) || 1);
+    gl.uniform1f(u.uTriRes, p.triplane_resolution);
+    gl.uniform1f(u.uTriVoxel, p.triplane_voxel_size);
+    gl.uniform1f(u.uSparseVoxel, p.sparse_grid_voxel_size);
+    gl.uniform1f(u.uBlock, p.data_block_size);
+    gl.uniform2fv(u.uRangeFeatures, p.range_features);
+    gl.uniform2fv(u.uRangeDensity, p.range_density);
+    gl.uniform3f(u.uAtlasSize, p.atlas_width, p.atlas_height, p.atlas_depth);
+    gl.uniform1i(u.uNumBlocks, sm.numBlocks);
+    gl.uniform1i(u.uGrid8, sm.grid8);
+    const T3 = gl.TEXTURE_3D, TA = gl.TEXTURE_2D_ARRAY;
+    bindTextures(gl, prog, [
+      ['tBlockIndices', T3, sm.tex.blockIndices], ['tAtlasRgb', T3, sm.tex.atlasRgb],
+      ['tAtlasDensity', T3, sm.tex.atlasDensity], ['tAtlasFeatures', T3, sm.tex.atlasFeatures],
+      ['tPlaneRgb', TA, sm.tex.planeRgb], ['tPlaneDensity', TA, sm.tex.planeDensity],
+      ['tPlaneFeatures', TA, sm.tex.planeFeatures], ['tOccupancy8', T3, sm.tex.occupancy8],
+      ['tDistance8', T3, sm.tex.distance8], ['tMlp', gl.TEXTURE_2D, this.mlpTex],
+    ]);
+    drawFullscreen(gl, target, width, height);
+    return true;
+  }
+
+  // A test_frames.json view as a camera for draw().
+  testCamera(i) {
+    const f = this.testFrames[i];
+    if (!f) throw new ViewerError(`test_frames.json has no view ${i}`);
+    const m = f.rotation;  // column-major 4x4
+    const rotation = [[m[0], m[4], m[8]], [m[1], m[5], m[9]], [m[2], m[6], m[10]]];
+    return {position: f.position.slice(), rotation, invProjection: invert4(f.projection)};
+  }
+
+  gpuBytes() { return this.slots.filter((s) => s).reduce((a, s) => a + s.bytes, 0); }
+}
+
+class GpuSubmodel {
+  constructor(gl, idx, data) {
+    this.gl = gl;
+    this.idx = idx;
+    this.params = data.params;
+    const p = data.params;
+    const nb = p.sparse_grid_resolution / p.data_block_size;
+    const t = p.triplane_resolution;
+    this.numBlocks = nb;
+    this.grid8 = Math.ceil(t / 8);
+    const [aw, ah, ad] = [p.atlas_width, p.atlas_height, p.atlas_depth];
+    this.tex = {
+      blockIndices: texture3D(gl, nb, nb, nb, 3, false, data.blockIndices),
+      atlasRgb: texture3D(gl, aw, ah, ad, 3, true, data.atlas.rgb),
+      atlasDensity: texture3D(gl, aw, ah, ad, 2, true, data.atlas.density),
+      atlasFeatures: texture3D(gl, aw, ah, ad, 3, true, data.atlas.features),
+      planeRgb: byteArrayTexture(gl, t, t, 3, 3, data.planes.rgb, true),
+      planeDensity: byteArrayTexture(gl, t, t, 3, 1, data.planes.density, true),
+      planeFeatures: byteArrayTexture(gl, t, t, 3, 4, data.planes.features, true),
+      occupancy8: texture3D(gl, this.grid8, this.grid8, this.grid8, 1, false, data.occupancy8),
+      distance8: texture3D(gl, this.grid8, this.grid8, this.grid8, 1, false, data.distance8),
+    };
+    this.bytes = data.bytes;
+  }
+  dispose() { for (const t of Object.values(this.tex)) this.gl.deleteTexture(t); }
+}
+
+function smName(sm) { return `sm_${String(sm).padStart(3, '0')}`; }
+
+function checkParams(p, where) {
+  if ((p.export_array_format || 'png') !== 'raw.gz') {
+    throw new ViewerError(`${where}: export_array_format ${p.export_array_format}; this viewer reads raw.gz assets`);
+  }
+  if (!p.export_store_rgb_and_density_separately) {
+    throw new ViewerError(`${where}: the legacy merged rgb+density layout is not supported`);
+  }
+  if ((p.deferred_rendering_mode || 'snerg') !== 'snerg') {
+    throw new ViewerError(`${where}: deferred_rendering_mode ${p.deferred_rendering_mode} (only snerg is supported)`);
+  }
+}
+
+async function fetchSubmodel(base, name, params, onProgress) {
+  const meta = new Map(params.asset_metadata.map((m) => [m.filename, m]));
+  const url = (file) => `${base}${name}/${file.replace(/\.gz$/, '')}`;  // the server answers X.raw from X.raw.gz
+  let bytes = 0;
+  const get = async (file) => {
+    const m = meta.get(file);
+    if (!m) throw new ViewerError(`${name}/scene_params.json: asset_metadata has no entry for ${file}`);
+    const data = await fetchBytes(url(file));
+    const want = m.shape.reduce((a, b) => a * b, 1);
+    if (data.length !== want) {
+      throw new ViewerError(`${name}/${file}: ${data.length} bytes, expected ${want}; the file is truncated or from another export`);
+    }
+    bytes += data.length;
+    onProgress(name, file);
+    return data;
+  };
+  const slices = (kind) => Promise.all([...Array(params.num_slices).keys()].map(
+    (k) => get(`sparse_grid_${kind}_${String(k).padStart(3, '0')}.raw.gz`)));
+  const planes = (kind) => Promise.all([0, 1, 2].map((k) => get(`plane_${kind}_${k}.raw.gz`)));
+  const grid8 = async (kind) => {
+    const first = meta.get(`${kind}_grid_8_000.raw.gz`);
+    if (!first) throw new ViewerError(`${name}: needs ${kind}_grid_8 (the factor-8 grid the renderer uses)`);
+    const parts = await Promise.all([...Array(first.slice_count || 1).keys()].map(
+      (i) => get(`${kind}_grid_8_${String(i).padStart(3, '0')}.raw.gz`)));
+    const out = new Uint8Array(parts.reduce((a, p) => a + p.length, 0));
+    let o = 0;
+    for (const part of parts) { out.set(part, o); o += part.length; }
+    return out;
+  };
+  const [blockIndices, rgb, density, features, prgb, pdensity, pfeatures, occupancy8, distance8] = await Promise.all([
+    get('sparse_grid_block_indices.raw.gz'), slices('rgb'), slices('density'), slices('features'),
+    planes('rgb'), planes('density'), planes('features'), grid8('occupancy'), grid8('distance')]);
+  return {params, blockIndices, atlas: {rgb, density, features}, planes: {rgb: prgb, density: pdensity, features: pfeatures},
+          occupancy8, distance8, bytes};
+}
+
+function parseMlp(raw, where) {
+  const layers = [0, 1, 2].map((i) => {
+    const k = raw[`ResampleDense_${i}/kernel`];
+    const b = raw[`ResampleDense_${i}/bias`];
+    if (!k || !b) throw new ViewerError(`${where}: deferred MLP lacks ResampleDense_${i}; exactly 3 grid layers are needed`);
+    return {kernel: Float32Array.from(k.data), kshape: k.shape, bias: Float32Array.from(b.data), bshape: b.shape};
+  });
+  const hidden = layers[0].kshape[5];
+  if (hidden % 4 !== 0 || layers[2].kshape[5] !== 3) throw new ViewerError(`${where}: unexpected deferred MLP widths`);
+  return {layers, hidden, inDim: 0};
+}
+
+// Kernels and biases of the 3 layers trilinearly interpolated on the P^3 lattice at the camera position (lattice
+// axes in the training frame, arrays [submodel, z, y, x, ...]); as smerf/baked_render.py:deferred_mlp_weights.
+function interpolateMlp(mlp, first, idx, position, center) {
+  const k = Math.round(Math.cbrt(first.num_submodels || 1));
+  const p = toTrain([0, 1, 2].map((a) => (position[a] - center[a]) * k));
+  return mlp.layers.map((layer) => {
+    const [, g, , , nin, nout] = layer.kshape;
+    const x = p.map((v) => (v + 1) / 2 * g - 0.5);
+    const lo = x.map(Math.floor);
+    const f = x.map((v, a) => v - lo[a]);
+    const kw = new Float64Array(nin * nout);
+    const bw = new Float64Array(nout);
+    for (let c = 0; c < 8; c++) {
+      const off = [(c >> 2) & 1, (c >> 1) & 1, c & 1];
+      const ii = off.map((o, a) => Math.min(g - 1, Math.max(0, lo[a] + o)));
+      const w = off.reduce((acc, o, a) => acc * (o ? f[a] : 1 - f[a]), 1);
+      const cell = ((idx * g + ii[2]) * g + ii[1]) * g + ii[0];
+      const kb = cell * nin * nout;
+      for (let j = 0; j < nin * nout; j++) kw[j] += w * layer.kernel[kb + j];
+      for (let j = 0; j < nout; j++) bw[j] += w * layer.bias[cell * nout + j];
+    }
+    return {k: kw, b: bw, nin, nout};
+  });
+}
+
+export function invert4(m) {
+  // column-major 4x4 inverse (general)
+  const inv = new Float64Array(16);
+  inv[0] = m[5] * m[10] * m[15] - m[5] * m[11] * m[14] - m[9] * m[6] * m[15] + m[9] * m[7] * m[14] + m[13] * m[6] * m[11] - m[13] * m[7] * m[10];
+  inv[4] = -m[4] * m[10] * m[15] + m[4] * m[11] * m[14] + m[8] * m[6] * m[15] - m[8] * m[7] * m[14] - m[12] * m[6] * m[11] + m[12] * m[7] * m[10];
+  inv[8] = m[4] * m[9] * m[15] - m[4] * m[11] * m[13] - m[8] * m[5] * m[15] + m[8] * m[7] * m[13] + m[12] * m[5] * m[11] - m[12] * m[7] * m[9];
+  inv[12] = -m[4] * m[9] * m[14] + m[4] * m[10] * m[13] + m[8] * m[5] * m[14] - m[8] * m[6] * m[13] - m[12] * m[5] * m[10] + m[12] * m[6] * m[9];
+  inv[1] = -m[1] * m[10] * m[15] + m[1] * m[11] * m[14] + m[9] * m[2] * m[15] - m[9] * m[3] * m[14] - m[13] * m[2] * m[11] + m[13] * m[3] * m[10];
+  inv[5] = m[0] * m[10] * m[15] - m[0] * m[11] * m[14] - m[8] * m[2] * m[15] + m[8] * m[3] * m[14] + m[12] * m[2] * m[11] - m[12] * m[3] * m[10];
+  inv[9] = -m[0] * m[9] * m[15] + m[0] * m[11] * m[13] + m[8] * m[1] * m[15] - m[8] * m[3] * m[13] - m[12] * m[1] * m[11] + m[12] * m[3] * m[9];
+  inv[13] = m[0] * m[9] * m[14] - m[0] * m[10] * m[13] - m[8] * m[1] * m[14] + m[8] * m[2] * m[13] + m[12] * m[1] * m[10] - m[12] * m[2] * m[9];
+  inv[2] = m[1] * m[6] * m[15] - m[1] * m[7] * m[14] - m[5] * m[2] * m[15] + m[5] * m[3] * m[14] + m[13] * m[2] * m[7] - m[13] * m[3] * m[6];
+  inv[6] = -m[0] * m[6] * m[15] + m[0] * m[7] * m[14] + m[4] * m[2] * m[15] - m[4] * m[3] * m[14] - m[12] * m[2] * m[7] + m[12] * m[3] * m[6];
+  inv[10] = m[0] * m[5] * m[15] - m[0] * m[7] * m[13] - m[4] * m[1] * m[15] + m[4] * m[3] * m[13] + m[12] * m[1] * m[7] - m[12] * m[3] * m[5];
+  inv[14] = -m[0] * m[5] * m[14] + m[0] * m[6] * m[13] + m[4] * m[1] * m[14] - m[4] * m[2] * m[13] - m[12] * m[1] * m[6] + m[12] * m[2] * m[5];
+  inv[3] = -m[1] * m[6] * m[11] + m[1] * m[7] * m[10] + m[5] * m[2] * m[11] - m[5] * m[3] * m[10] - m[9] * m[2] * m[7] + m[9] * m[3] * m[6];
+  inv[7] = m[0] * m[6] * m[11] - m[0] * m[7] * m[10] - m[4] * m[2] * m[11] + m[4] * m[3] * m[10] + m[8] * m[2] * m[7] - m[8] * m[3] * m[6];
+  inv[11] = -m[0] * m[5] * m[11] + m[0] * m[7] * m[9] + m[4] * m[1] * m[11] - m[4] * m[3] * m[9] - m[8] * m[1] * m[7] + m[8] * m[3] * m[5];
+  inv[15] = m[0] * m[5] * m[10] - m[0] * m[6] * m[9] - m[4] * m[1] * m[10] + m[4] * m[2] * m[9] + m[8] * m[1] * m[6] - m[8] * m[2] * m[5];
+  const det = m[0] * inv[0] + m[1] * inv[4] + m[2] * inv[8] + m[3] * inv[12];
+  if (!det) throw new ViewerError('singular projection matrix');
+  return Array.from(inv, (v) => v / det);
+}
+
+// three.js-style perspective projection (column-major) for the interactive camera.
+export function perspective(vfovDeg, aspect, near = 0.2, far = 100) {
+  const f = 1 / Math.tan((vfovDeg * Math.PI) / 360);
+  return [f / aspect, 0, 0, 0, 0, f, 0, 0, 0, 0, (far + near) / (near - far), -1, 0, 0, (2 * far * near) / (near - far), 0];
+}
