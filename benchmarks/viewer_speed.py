@@ -49,9 +49,7 @@ def measure(static: Path, args, size) -> tuple[list[float], np.ndarray, str]:
         image = page._image(b64, w, h)
         times = []
         for _ in range(args.repeats):
-            r = page.evaluate(
-                "([w, h, k, n, m, i]) => window.nerfbake.app.benchmark(w, h, k, n, m, 0).then(x => x)",
-                [w, h, args.frame_mult, args.frames, args.warmup, args.view + 1])
+            r = page.benchmark(w, h, args.frame_mult, args.frames, args.warmup, max_views=args.view + 1)
             times.append(r["views"][args.view]["ms_per_frame"])
         if page.errors:
             raise RuntimeError(f"console errors with {static}: {page.errors}")

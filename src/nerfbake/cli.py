@@ -657,7 +657,7 @@ def build_parser() -> argparse.ArgumentParser:
     vw.add_argument("--frames", type=int, default=6, help="timed animation frames per view")
     vw.add_argument("--warmup", type=int, default=2, help="discarded animation frames per view")
     vw.add_argument("--max-views", type=int, help="benchmark only the first N views (default: every test view)")
-    vw.add_argument("--gpu", action="store_true", help="benchmark on the machine's GPU instead of SwiftShader")
+    vw.add_argument("--gpu", action="store_true", help="benchmark on the machine's GPU instead of SwiftShader, timed by the GPU (EXT_disjoint_timer_query_webgl2) where offered")
     vw.add_argument("--json", action="store_true")
     vw.set_defaults(func=cmd_view)
 

@@ -130,3 +130,51 @@ def test_view_benchmark_prints_ms_per_frame_for_both_sizes(tiny_tree, capsys):
     assert main(["view", str(tiny_tree), *quick]) == 0
     out = json.loads(capsys.readouterr().out)
     assert out["kind"] == "octree" and out["ms_per_frame_1280x720"] > 0 and len(out["sizes"][0]["views"]) == 1
+
+
+# --- phones ---------------------------------------------------------------------------------------------------------------
+
+PHONE = {"viewport": {"width": 390, "height": 844}, "device_scale_factor": 3, "is_mobile": True, "has_touch": True}
+
+
+def test_touch_controls_move_the_camera_in_phone_emulation():
+    """One finger orbits, a pinch zooms, two fingers moving together pan: driven by touch events that go through
+    chromium's own input pipeline (DevTools Input.dispatchTouchEvent), as a phone's screen sends them."""
+    from nerfbake.viewer.browser import ViewerPage
+
+    with ViewerPage(shared_data("smerf_tiny"), query="quality=phone&mouseMode=orbit", size=(390, 844),
+                    device=PHONE) as page:
+        cdp = page.page.context.new_cdp_session(page.page)
+
+        def gesture(paths):  # paths: one list of (x, y) per finger, all the same length
+            def send(kind, k):
+                points = [] if kind == "touchEnd" else [{"x": p[k][0], "y": p[k][1], "id": i} for i, p in enumerate(paths)]
+                cdp.send("Input.dispatchTouchEvent", {"type": kind, "touchPoints": points})
+            send("touchStart", 0)
+            for k in range(1, len(paths[0])):
+                send("touchMove", k)
+            send("touchEnd", 0)
+
+        assert page.evaluate("() => window.innerWidth") == 390 and page.evaluate("() => window.devicePixelRatio") == 3
+        start = page.controls()
+        gesture([[(150 + 20 * k, 400 + 4 * k) for k in range(6)]])  # one finger: orbit
+        orbit = page.controls()
+        assert abs(orbit["yaw"] - start["yaw"]) > 0.2 and abs(orbit["pitch"] - start["pitch"]) > 0.02
+        assert orbit["distance"] == pytest.approx(start["distance"]) and orbit["target"] == pytest.approx(start["target"])
+        assert np.linalg.norm(np.subtract(orbit["position"], start["position"])) > 0.01
+
+        gesture([[(195, 400 - 15 * k) for k in range(6)], [(195, 440 + 15 * k) for k in range(6)]])  # pinch out
+        pinch = page.controls()
+        assert pinch["distance"] < 0.6 * orbit["distance"]  # 40 px apart -> 190 px apart: zoomed in
+        # the midpoint stays put: the target drifts by under 2 % of the distance (each finger's event pans by half
+        # its motion at the distance of that moment), and the view does not turn
+        assert np.linalg.norm(np.subtract(pinch["target"], orbit["target"])) < 0.02 * orbit["distance"]
+        assert pinch["yaw"] == orbit["yaw"]
+
+        gesture([[(150 + 20 * k, 400) for k in range(6)], [(150 + 20 * k, 480) for k in range(6)]])  # two-finger pan
+        pan = page.controls()
+        assert np.linalg.norm(np.subtract(pan["target"], pinch["target"])) > 0.1 * pinch["distance"]
+        assert pan["distance"] == pytest.approx(pinch["distance"]) and pan["yaw"] == pinch["yaw"]
+        frames = page.state()["frames"]
+        page.page.wait_for_function(f"() => window.nerfbake.state().frames > {frames + 2}")  # and it keeps drawing
+        assert page.errors == []

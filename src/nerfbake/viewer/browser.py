@@ -95,9 +95,15 @@ class ViewerPage:
         return self.evaluate("() => window.nerfbake.state()")
 
     def benchmark(self, width: int, height: int, frame_mult: int = 1, frames_per_view: int = 6, warmup: int = 2,
-                  max_views: int | None = None) -> dict:
-        return self.evaluate("([w, h, k, n, m, v]) => window.nerfbake.benchmark(w, h, k, n, m, v)",
-                             [width, height, frame_mult, frames_per_view, warmup, max_views or 0])
+                  max_views: int | None = None, gpu_timer: bool = False) -> dict:
+        """Mean ms/frame over the scene's benchmark views at one size (``gpu_timer``: also GPU time, where the browser
+        offers EXT_disjoint_timer_query_webgl2; the result's ``timer`` says which figure is which)."""
+        return self.evaluate("([w, h, k, n, m, v, g]) => window.nerfbake.benchmark(w, h, k, n, m, v, g)",
+                             [width, height, frame_mult, frames_per_view, warmup, max_views or 0, gpu_timer])
+
+    def controls(self) -> dict:
+        """The camera controls' state: position, rotation rows, orbit target, distance, yaw, pitch."""
+        return self.evaluate("() => window.nerfbake.controls()")
 
 
 def octree_camera(cam) -> dict:
@@ -108,14 +114,20 @@ def octree_camera(cam) -> dict:
 
 def run_benchmark(scene, sizes=((512, 512), (1280, 720)), frame_mult: int = 1, frames_per_view: int = 6, warmup: int = 2,
                   max_views: int | None = None, software_gl: bool = True) -> dict:
-    """Mean ms/frame per size over the scene's benchmark views, measured in the browser."""
+    """Mean ms/frame per size over the scene's benchmark views, measured in the browser; on a real GPU
+    (``software_gl=False``) each frame is also timed by the GPU where the browser offers a timer query, and
+    ``ms_per_frame_WxH`` is then that GPU time."""
     out = {"scene": str(getattr(scene, "root", scene)), "sizes": []}
     with ViewerPage(scene, size=(256, 256), software_gl=software_gl) as page:
         for w, h in sizes:
-            out["sizes"].append(page.benchmark(w, h, frame_mult, frames_per_view, warmup, max_views))
+            out["sizes"].append(page.benchmark(w, h, frame_mult, frames_per_view, warmup, max_views,
+                                               gpu_timer=not software_gl))
         out["console_errors"] = page.errors
     first = out["sizes"][0]
-    out.update(kind=first["kind"], renderer=first["renderer"])
+    out.update(kind=first["kind"], renderer=first["renderer"], timer=first["timer"], gpu_bytes=first["gpu_bytes"])
+    if "timer_note" in first:
+        out["timer_note"] = first["timer_note"]
     for r in out["sizes"]:
-        out[f"ms_per_frame_{r['width']}x{r['height']}"] = r["mean_ms_per_frame"]
+        out[f"ms_per_frame_{r['width']}x{r['height']}"] = r.get("gpu_mean_ms_per_frame", r["mean_ms_per_frame"])
+        out[f"wall_ms_per_frame_{r['width']}x{r['height']}"] = r["mean_ms_per_frame"]
     return out

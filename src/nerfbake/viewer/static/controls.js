@@ -144,7 +144,10 @@ export class Controls {
       if (button === 2 || e.shiftKey) this.pan(dx, dy);
       else this.rotate(dx, dy);
     });
-    const up = (e) => touches.delete(e.pointerId);
+    const up = (e) => {
+      touches.delete(e.pointerId);
+      if (touches.size === 1) last = [...touches.values()][0];  // the finger left down goes on from where it is
+    };
     el.addEventListener('pointerup', up);
     el.addEventListener('pointercancel', up);
     el.addEventListener('wheel', (e) => { e.preventDefault(); this.zoom(Math.exp(e.deltaY * 0.001)); }, {passive: false});

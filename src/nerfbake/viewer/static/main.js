@@ -67,9 +67,11 @@ class App {
       if (params.get('exposure')) this.scene.exposureOverride = Number(params.get('exposure'));
       const first = this.scene.testFrames.length ? this.scene.testCamera(Number(params.get('view') || 0)) : null;
       const forward = first ? [-first.rotation[0][2], -first.rotation[1][2], -first.rotation[2][2]] : [0, 0, -1];
+      const position = first ? first.position : [0, 0, 0];
+      // orbit the scene's centre, or a point ahead where the camera stands at the centre itself
+      const target = Math.hypot(...position) > 0.1 ? [0, 0, 0] : position.map((v, a) => v + forward[a]);
       this.controls = new Controls(this.canvas, {
-        mode: params.get('mouseMode') || 'fly', up: UP_AXES[params.get('up') || 'y'],
-        position: first ? first.position : [0, 0, 0], forward, target: [0, 0, 0], speed: 0.3,
+        mode: params.get('mouseMode') || 'fly', up: UP_AXES[params.get('up') || 'y'], position, forward, target, speed: 0.3,
       });
     } else {
       let loaded = 0;
@@ -228,41 +230,76 @@ class App {
   }
 
   // Each view is drawn `frameMult` times per animation frame so the display refresh does not cap the figure;
-  // warm-up frames are discarded; the result is the mean frame time per view.
-  async benchmark(width, height, frameMult = 1, framesPerView = 6, warmup = 2, maxViews = 0) {
+  // warm-up frames are discarded; the result is the mean frame time per view. With `gpuTimer` and a browser that
+  // offers EXT_disjoint_timer_query_webgl2, every timed frame is also measured on the GPU itself (a TIME_ELAPSED
+  // query around its draws), so figures on a real GPU are GPU time, not requestAnimationFrame jitter.
+  async benchmark(width, height, frameMult = 1, framesPerView = 6, warmup = 2, maxViews = 0, gpuTimer = false) {
     this.running = false;
-    const target = new RenderTarget(this.gl, width, height);
+    const gl = this.gl;
+    const target = new RenderTarget(gl, width, height);
     let views = this.benchmarkViews(width, height);
     if (maxViews > 0) views = views.slice(0, maxViews);
     if (!views.length) throw new ViewerError('the scene has no test_frames.json views to benchmark');
+    const timer = gpuTimer ? gl.getExtension('EXT_disjoint_timer_query_webgl2') : null;
     const perView = [];
+    let disjoint = false;
     for (const [i, cam] of views.entries()) {
       await this.scene.ready(cam.position);
       const times = [];
+      const queries = [];
       await new Promise((resolve) => {
         let frame = 0;
         const tick = () => {
+          const timed = frame >= warmup;
+          const query = timer && timed ? gl.createQuery() : null;
+          if (query) gl.beginQuery(timer.TIME_ELAPSED_EXT, query);
           const t0 = performance.now();
           for (let k = 0; k < frameMult; k++) this.scene.draw(cam, target, width, height);
-          finish(this.gl);
-          if (frame >= warmup) times.push((performance.now() - t0) / frameMult);
+          if (query) { gl.endQuery(timer.TIME_ELAPSED_EXT); queries.push(query); }
+          finish(gl);
+          if (timed) times.push((performance.now() - t0) / frameMult);
           frame++;
           if (frame < warmup + framesPerView) requestAnimationFrame(tick); else resolve();
         };
         requestAnimationFrame(tick);
       });
-      perView.push({view: i, ms_per_frame: times.reduce((a, b) => a + b, 0) / times.length});
+      const entry = {view: i, ms_per_frame: times.reduce((a, b) => a + b, 0) / times.length};
+      if (timer) {
+        const ns = await queryResults(gl, timer, queries);
+        disjoint = disjoint || ns === null;
+        if (ns) entry.gpu_ms_per_frame = ns.reduce((a, b) => a + b, 0) / ns.length / 1e6 / frameMult;
+      }
+      perView.push(entry);
       status(`benchmark ${width}x${height}: view ${i + 1}/${views.length}`);
     }
     target.dispose();
     this.running = true;
     requestAnimationFrame((t) => this.loop(t));
     const mean = perView.reduce((a, v) => a + v.ms_per_frame, 0) / perView.length;
-    const dbg = this.gl.getExtension('WEBGL_debug_renderer_info');
-    return {width, height, frame_mult: frameMult, frames_per_view: framesPerView, warmup_frames: warmup,
-            mean_ms_per_frame: mean, fps: 1000 / mean, views: perView, kind: this.scene.kind,
-            renderer: dbg ? this.gl.getParameter(dbg.UNMASKED_RENDERER_WEBGL) : this.gl.getParameter(this.gl.RENDERER)};
+    const dbg = gl.getExtension('WEBGL_debug_renderer_info');
+    const out = {width, height, frame_mult: frameMult, frames_per_view: framesPerView, warmup_frames: warmup,
+                 mean_ms_per_frame: mean, fps: 1000 / mean, views: perView, kind: this.scene.kind,
+                 renderer: dbg ? gl.getParameter(dbg.UNMASKED_RENDERER_WEBGL) : gl.getParameter(gl.RENDERER),
+                 gpu_bytes: this.scene.gpuBytes(), timer: 'cpu'};
+    if (gpuTimer && !timer) out.timer_note = 'EXT_disjoint_timer_query_webgl2 is not offered: CPU wall time after finish()';
+    else if (disjoint) out.timer_note = 'the GPU timer reported a disjoint operation: CPU wall time after finish()';
+    else if (timer) {
+      out.timer = 'gpu';
+      out.gpu_mean_ms_per_frame = perView.reduce((a, v) => a + v.gpu_ms_per_frame, 0) / perView.length;
+    }
+    return out;
   }
+}
+
+// Nanoseconds of each finished TIME_ELAPSED query, or null when the GPU reported a disjoint operation (the
+// figures would be meaningless then); polls once per animation frame as the extension requires.
+async function queryResults(gl, timer, queries) {
+  const pending = (q) => !gl.getQueryParameter(q, gl.QUERY_RESULT_AVAILABLE);
+  for (let tries = 0; queries.some(pending) && tries < 600; tries++) await new Promise(requestAnimationFrame);
+  const bad = gl.getParameter(timer.GPU_DISJOINT_EXT) || queries.some(pending);
+  const ns = bad ? null : queries.map((q) => gl.getQueryParameter(q, gl.QUERY_RESULT));
+  for (const q of queries) gl.deleteQuery(q);
+  return ns;
 }
 
 const app = new App();
@@ -281,7 +318,10 @@ window.nerfbake = {
     cam.projection ? {...cam, invProjection: invert4(cam.projection)} : cam, w, h),
   setPose: (position, forward) => app.controls.setPose(position, forward),
   lookRotation,
-  benchmark: (w, h, k, n, warm, views) => app.benchmark(w, h, k, n, warm, views),
+  benchmark: (w, h, k, n, warm, views, gpuTimer) => app.benchmark(w, h, k, n, warm, views, gpuTimer),
+  // The camera controls' state (tests drive them with touch events and read this).
+  controls: () => ({...app.controls.camera(), target: app.controls.target.slice(), distance: app.controls.distance,
+                    yaw: app.controls.yaw, pitch: app.controls.pitch}),
 };
 app.start().then(() => resolveReady(true), (e) => { fail(e); rejectReady(e); });
 if (params.get('benchmark') === '1') {
