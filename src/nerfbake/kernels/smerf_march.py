@@ -14,6 +14,7 @@ The per-pixel deferred MLP runs afterwards in torch (:mod:`nerfbake.smerf.baked_
 """
 from __future__ import annotations
 
+import numpy as np
 import torch
 
 from nerfbake.kernels import device_of, ensure_loaded, launch_chunks, parallel_map, warp
@@ -63,69 +64,6 @@ def uncontract(z: wp.vec3) -> wp.vec3:
 
 
 @wp.func
-def region_t(o: wp.vec3, d: wp.vec3, p: wp.vec3, k: int) -> wp.vec3:
-    """Per axis A, the t where contract(o + t d)[A] == p[A] inside region k (0 core, 1..6 = +x,+y,+z,-x,-y,-z)."""
-    if k == 0:
-        return wp.cw_div(p - o, d)
-    if k == 1:
-        return wp.vec3((1.0 / (2.0 - p[0]) - o[0]) / d[0], (o[1] - p[1] * o[0]) / (p[1] * d[0] - d[1]),
-                       (o[2] - p[2] * o[0]) / (p[2] * d[0] - d[2]))
-    if k == 2:
-        return wp.vec3((o[0] - p[0] * o[1]) / (p[0] * d[1] - d[0]), (1.0 / (2.0 - p[1]) - o[1]) / d[1],
-                       (o[2] - p[2] * o[1]) / (p[2] * d[1] - d[2]))
-    if k == 3:
-        return wp.vec3((o[0] - p[0] * o[2]) / (p[0] * d[2] - d[0]), (o[1] - p[1] * o[2]) / (p[1] * d[2] - d[1]),
-                       (1.0 / (2.0 - p[2]) - o[2]) / d[2])
-    if k == 4:
-        return wp.vec3((1.0 / (-p[0] - 2.0) - o[0]) / d[0], -(o[0] * p[1] + o[1]) / (d[0] * p[1] + d[1]),
-                       -(o[0] * p[2] + o[2]) / (d[0] * p[2] + d[2]))
-    if k == 5:
-        return wp.vec3(-(o[1] * p[0] + o[0]) / (d[1] * p[0] + d[0]), (1.0 / (-p[1] - 2.0) - o[1]) / d[1],
-                       -(o[1] * p[2] + o[2]) / (d[1] * p[2] + d[2]))
-    return wp.vec3(-(o[2] * p[0] + o[0]) / (d[2] * p[0] + d[0]), -(o[2] * p[1] + o[1]) / (d[2] * p[1] + d[1]),
-                   (1.0 / (-p[2] - 2.0) - o[2]) / d[2])
-
-
-@wp.func
-def region_box(k: int):
-    c1 = 1.0 - 1.0e-5
-    c2 = 2.0 - 1.0e-4
-    lo = wp.vec3(-c1, -c1, -c1)
-    hi = wp.vec3(c1, c1, c1)
-    if k >= 1 and k <= 3:
-        lo[k - 1] = c1
-        hi[k - 1] = c2
-    elif k >= 4:
-        lo[k - 4] = -c2
-        hi[k - 4] = -c1
-    return lo, hi
-
-
-@wp.func
-def checked_t(o: wp.vec3, d: wp.vec3, t: wp.vec3, p: wp.vec3, lo: wp.vec3, hi: wp.vec3) -> wp.vec3:
-    """Drop (set to -INF) per-axis solutions that do not land on the plane inside the region's box."""
-    eps = 1.0e-3
-    out = t
-    for a in range(3):
-        q = contract(o + t[a] * d)
-        bad = wp.abs(q[a] - p[a]) > eps
-        for b in range(3):
-            if q[b] < lo[b] - eps or q[b] > hi[b] + eps:
-                bad = True
-        if bad:
-            out[a] = -INF
-    return out
-
-
-@wp.func
-def region_exit(o: wp.vec3, d: wp.vec3, k: int) -> float:
-    lo, hi = region_box(k)
-    t0 = checked_t(o, d, region_t(o, d, lo, k), lo, lo, hi)
-    t1 = checked_t(o, d, region_t(o, d, hi, k), hi, lo, hi)
-    return wp.max(wp.max(wp.max(t0[0], t0[1]), t0[2]), wp.max(wp.max(t1[0], t1[1]), t1[2]))
-
-
-@wp.func
 def slab(lo: wp.vec3, hi: wp.vec3, o: wp.vec3, inv_d: wp.vec3) -> wp.vec2:
     ta = wp.cw_mul(lo - o, inv_d)
     tb = wp.cw_mul(hi - o, inv_d)
@@ -134,16 +72,62 @@ def slab(lo: wp.vec3, hi: wp.vec3, o: wp.vec3, inv_d: wp.vec3) -> wp.vec2:
     return wp.vec2(tmin, tmax)
 
 
+@wp.func
+def half_space(iv: wp.vec2, no: float, nd: float, c: float) -> wp.vec2:
+    """The interval iv of t cut to where n.(o + t d) >= c, given no = n.o and nd = n.d."""
+    if nd > 0.0:
+        return wp.vec2(wp.max(iv[0], (c - no) / nd), iv[1])
+    if nd < 0.0:
+        return wp.vec2(iv[0], wp.min(iv[1], (c - no) / nd))
+    if no >= c:
+        return iv
+    return wp.vec2(INF, -INF)
+
+
+@wp.func
+def region_exit(o: wp.vec3, d: wp.vec3, k: int) -> float:
+    """The t where the ray leaves region k (0 core, 1..6 = +x,+y,+z,-x,-y,-z), or -INF where it never is in it.
+
+    Each region is convex in world space, so the ray's stretch in it is one interval cut out by half-spaces: the
+    core is the box |x| <= 1 - 1e-5; outer region (axis a, sign s) is s x_a >= 1, s x_a <= 1e4 (contracted
+    2 - 1e-4) and s x_a >= |x_b| for both other axes. The shader computes the same closed form."""
+    if k == 0:
+        c1 = 1.0 - 1.0e-5
+        t = slab(wp.vec3(-c1, -c1, -c1), wp.vec3(c1, c1, c1), o, wp.vec3(1.0 / d[0], 1.0 / d[1], 1.0 / d[2]))
+        if t[0] <= t[1]:
+            return t[1]
+        return -INF
+    a = (k - 1) % 3
+    b = (a + 1) % 3
+    c = (a + 2) % 3
+    sg = wp.where(k <= 3, 1.0, -1.0)
+    oa = sg * o[a]
+    da = sg * d[a]
+    iv = wp.vec2(-INF, INF)
+    iv = half_space(iv, oa, da, 1.0)
+    iv = half_space(iv, -oa, -da, -1.0e4)
+    iv = half_space(iv, oa - o[b], da - d[b], 0.0)
+    iv = half_space(iv, oa + o[b], da + d[b], 0.0)
+    iv = half_space(iv, oa - o[c], da - d[c], 0.0)
+    iv = half_space(iv, oa + o[c], da + d[c], 0.0)
+    if iv[0] <= iv[1]:
+        return iv[1]
+    return -INF
+
+
 @wp.struct
 class Quadrant:
+    """One region's straight contracted ray ``oc + t dc`` on [tmin, tmax]; ``t_end``: where it leaves the occupied
+    box for good (-INF if it never meets it): no later step can land in an occupied cell."""
     oc: wp.vec3
     dc: wp.vec3
     tmin: float
     tmax: float
+    t_end: float
 
 
 @wp.func
-def quadrant_setup(o: wp.vec3, d: wp.vec3, tp: float, tq: float) -> Quadrant:
+def quadrant_setup(o: wp.vec3, d: wp.vec3, tp: float, tq: float, occ_lo: wp.vec3, occ_hi: wp.vec3) -> Quadrant:
     xp = o + tp * d
     lo = wp.vec3(-1.0, -1.0, -1.0)
     hi = wp.vec3(1.0, 1.0, 1.0)
@@ -162,6 +146,10 @@ def quadrant_setup(o: wp.vec3, d: wp.vec3, tp: float, tq: float) -> Quadrant:
     t = slab(lo, hi, q.oc, inv)
     q.tmin = t[0]
     q.tmax = t[1]
+    occ = slab(occ_lo, occ_hi, q.oc, inv)
+    q.t_end = -INF
+    if occ[0] <= occ[1]:
+        q.t_end = wp.min(q.tmax, occ[1])
     return q
 
 
@@ -248,6 +236,8 @@ class BakedScene:
     rd_max: float
     scale: float
     gating: int
+    occ_lo: wp.vec3  # contracted box around every occupied factor-8 cell (occupied_box)
+    occ_hi: wp.vec3
 
 
 @wp.kernel
@@ -267,7 +257,15 @@ def baked_march(
     # regions crossed, sorted by exit t (world t along the unnormalised ray)
     exits = vec8(INF, INF, INF, INF, INF, INF, INF, INF)
     n = int(0)
-    for k in range(7):
+    # Where the occupied box lies in the core (contracted = world there), a ray that misses it in world space meets
+    # no occupied cell: no regions, no march, only the deferred MLP's background.
+    lo = scene.occ_lo
+    hi = scene.occ_hi
+    in_core = wp.max(wp.abs(lo[0]), wp.max(wp.abs(lo[1]), wp.abs(lo[2]))) <= 1.0 and wp.max(
+        wp.abs(hi[0]), wp.max(wp.abs(hi[1]), wp.abs(hi[2]))) <= 1.0
+    hit = slab(lo, hi, o, wp.vec3(1.0 / d[0], 1.0 / d[1], 1.0 / d[2]))
+    misses = in_core and (hit[0] > hit[1] or hit[1] < near)
+    for k in range(wp.where(misses, 0, 7)):
         t = region_exit(o, d, k)
         if t >= near:
             j = n
@@ -276,7 +274,7 @@ def baked_march(
                 j -= 1
             exits[j] = t
             n += 1
-    q = quadrant_setup(o, d, near, near + 0.5 * (exits[0] - near))
+    q = quadrant_setup(o, d, near, near + 0.5 * (exits[0] - near), lo, hi)
     tc = float(0.0)
     qi = int(1)
     t_block = float(-INF)
@@ -287,7 +285,7 @@ def baked_march(
     coarse_color = wp.vec3()
     coarse_feat = wp.vec4()
     tres = float(scene.triplane_res)
-    max_steps = int(step_mult) * int(wp.ceil(wp.sqrt(2.0 * tres * tres)))
+    max_steps = wp.where(misses, 0, int(step_mult) * int(wp.ceil(wp.sqrt(2.0 * tres * tres))))
     orig_step = scene.triplane_voxel / step_mult
     min_p = wp.vec3(-2.0, -2.0, -2.0)
     vs_grid = 8.0 * scene.triplane_voxel
@@ -300,7 +298,7 @@ def baked_march(
         i += 1
         ema = visibility_delay * ema + (1.0 - visibility_delay) * vis
         step = orig_step * (10.0 - 9.0 * wp.sqrt(wp.min(1.0, ema / 0.8)))
-        if tc > q.tmax:
+        if tc > q.t_end:
             z_exit = q.oc + q.tmax * q.dc
             if wp.max(wp.abs(z_exit[0]), wp.max(wp.abs(z_exit[1]), wp.abs(z_exit[2]))) >= 2.0 - 1.0e-3:
                 break
@@ -312,18 +310,20 @@ def baked_march(
                     break
             lo_t = exits[qi - 1]
             hi_t = exits[qi]
-            q = quadrant_setup(o, d, lo_t + 0.1 * (hi_t - lo_t), lo_t + 0.9 * (hi_t - lo_t))
+            q = quadrant_setup(o, d, lo_t + 0.1 * (hi_t - lo_t), lo_t + 0.9 * (hi_t - lo_t), lo, hi)
             tc = q.tmin + 0.5 * step
             qi += 1
             t_block = -INF
         z = q.oc + tc * q.dc
-        # 1. distance grid: jump whole empty cells
-        dist = texel3(scene.distance8, wp.cw_div(z - min_p, wp.vec3(vs_grid, vs_grid, vs_grid))) * vs_grid
-        if dist > 0.0:
-            tc += dist
-            continue
-        # 2. bit-packed occupancy (cached exit of the last queried cell)
+        # Until tc passes t_block the ray is inside the occupied half-cell found last (its factor-8 cell has
+        # distance 0), so both grid queries are skipped there, as the shader does.
         if tc > t_block:
+            # 1. distance grid: jump whole empty cells
+            dist = texel3(scene.distance8, wp.cw_div(z - min_p, wp.vec3(vs_grid, vs_grid, vs_grid))) * vs_grid
+            if dist > 0.0:
+                tc += dist
+                continue
+            # 2. bit-packed occupancy (cached exit of the last queried cell)
             pos = (z - min_p) / vs_grid
             bmin = wp.vec3(wp.floor(pos[0]), wp.floor(pos[1]), wp.floor(pos[2]))
             bmax = bmin + wp.vec3(1.0, 1.0, 1.0)
@@ -414,7 +414,18 @@ def to_warp_scene(sm, device: str):
     s.rd_min, s.rd_max = (float(v) for v in p["range_density"])
     s.scale = float(p["submodel_scale"])
     s.gating = 0 if p.get("feature_gating") is False else 1
+    s.occ_lo, s.occ_hi = (wp.vec3(*v) for v in occupied_box(sm.distance[8], 8.0 * s.triplane_voxel))
     return s
+
+
+def occupied_box(distance8: np.ndarray, voxel: float) -> tuple[list[float], list[float]]:
+    """[lo, hi] in contracted coordinates around every factor-8 cell of ``distance8`` (n, n, n; [x, y, z]) whose
+    distance is 0 (occupied), each cell ``voxel`` wide from -2; an empty grid gives an empty box (lo > hi). The
+    viewer computes the same box at upload (smerf.js: occupiedBox)."""
+    cells = np.argwhere(np.asarray(distance8) == 0)
+    if len(cells) == 0:
+        return [1.0, 1.0, 1.0], [-1.0, -1.0, -1.0]
+    return ((-2.0 + cells.min(0) * voxel).tolist(), (-2.0 + (cells.max(0) + 1) * voxel).tolist())
 
 
 def march_baked(scene, origins: torch.Tensor, dirs: torch.Tensor, step_mult: float = 1.0,

@@ -207,6 +207,8 @@ export class SmerfScene {
     gl.uniform3f(u.uAtlasSize, p.atlas_width, p.atlas_height, p.atlas_depth);
     gl.uniform1i(u.uNumBlocks, sm.numBlocks);
     gl.uniform1i(u.uGrid8, sm.grid8);
+    gl.uniform3fv(u.uOccLo, sm.occupied[0]);
+    gl.uniform3fv(u.uOccHi, sm.occupied[1]);
     const T3 = gl.TEXTURE_3D, TA = gl.TEXTURE_2D_ARRAY;
     bindTextures(gl, prog, [
       ['tBlockIndices', T3, sm.tex.blockIndices], ['tAtlasA', T3, sm.tex.atlasA], ['tAtlasB', T3, sm.tex.atlasB],
@@ -248,6 +250,7 @@ class GpuSubmodel {
     const [planeA] = interleave([[concat(data.planes.density), 1], [concat(data.planes.rgb), 3]]);
     const [grid8] = interleave([[data.distance8, 1], [data.occupancy8, 1]], 2);
     const g8 = this.grid8;
+    this.occupied = occupiedBox(data.distance8, g8, 8 * p.triplane_voxel_size);
     this.tex = {
       blockIndices: texture3D(gl, nb, nb, nb, 3, false, data.blockIndices),
       atlasA: texture3D(gl, aw, ah, ad, 4, true, atlasA),
@@ -260,6 +263,19 @@ class GpuSubmodel {
     this.textureBytes = nb ** 3 * 4 + 2 * aw * ah * ad * 4 + 2 * 3 * t * t * 4 + g8 ** 3 * 2;
   }
   dispose() { for (const t of Object.values(this.tex)) this.gl.deleteTexture(t); }
+}
+
+// [lo, hi] in contracted coordinates around every factor-8 cell whose distance is 0 (occupied), as
+// kernels/smerf_march.py: occupied_box computes it; an empty grid gives an empty box (lo > hi).
+function occupiedBox(distance8, n, voxel) {
+  const lo = [n, n, n], hi = [-1, -1, -1];
+  for (let f = 0; f < distance8.length; f++) {
+    if (distance8[f] !== 0) continue;
+    const c = [f % n, Math.floor(f / n) % n, Math.floor(f / (n * n))];  // texel (x, y, z) as the 3D texture holds it
+    for (let a = 0; a < 3; a++) { lo[a] = Math.min(lo[a], c[a]); hi[a] = Math.max(hi[a], c[a] + 1); }
+  }
+  if (hi[0] < 0) return [[1, 1, 1], [-1, -1, -1]];
+  return [lo.map((v) => -2 + v * voxel), hi.map((v) => -2 + v * voxel)];
 }
 
 function concat(parts) {
