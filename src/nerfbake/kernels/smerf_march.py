@@ -299,6 +299,9 @@ def baked_march(
         ema = visibility_delay * ema + (1.0 - visibility_delay) * vis
         step = orig_step * (10.0 - 9.0 * wp.sqrt(wp.min(1.0, ema / 0.8)))
         if tc > q.t_end:
+            # past the occupied box in the core, which holds it all: a line leaves a convex box once
+            if in_core and wp.max(wp.abs(q.oc[0]), wp.max(wp.abs(q.oc[1]), wp.abs(q.oc[2]))) <= 1.0:
+                break
             z_exit = q.oc + q.tmax * q.dc
             if wp.max(wp.abs(z_exit[0]), wp.max(wp.abs(z_exit[1]), wp.abs(z_exit[2]))) >= 2.0 - 1.0e-3:
                 break

@@ -37,25 +37,25 @@ export function packMlp(layout, weights) {
 function mlpSource(defs) {
   const L = mlpLayout(defs.IN_DIM, defs.HIDDEN);
   const vec = (i) => (defs.MLP_IN_UBO ? `uMlp[${i}]` : `texelFetch(tMlp, ivec2(${i % 1024}, ${Math.floor(i / 1024)}), 0)`);
-  const mat = (i) => `mat4(${vec(i)}, ${vec(i + 1)}, ${vec(i + 2)}, ${vec(i + 3)})`;
+  // A 4x4 block times a vec4 as the sum of its columns scaled by the inputs (no mat4 is assembled); the first layer
+  // takes its inputs by name, so the padding to a multiple of 4 costs nothing.
+  const mul = (i, x) => `${vec(i)} * ${x}.x + ${vec(i + 1)} * ${x}.y + ${vec(i + 2)} * ${x}.z + ${vec(i + 3)} * ${x}.w`;
   // the inputs in the trained order: colour, features, (coarse colour, coarse features,) direction, sin, cos
   const x = ['e0.x', 'e0.y', 'e0.z', 'e1.x', 'e1.y', 'e1.z', 'e1.w'];
   if (defs.COARSE_SUM) x.push('e2.x', 'e2.y', 'e2.z', 'e3.x', 'e3.y', 'e3.z', 'e3.w');
   x.push('v.x', 'v.y', 'v.z');
   for (const f of ['s', 'c']) for (let k = 0; k < 4; k++) x.push(`${f}${k}.x`, `${f}${k}.y`, `${f}${k}.z`);
   if (x.length !== L.inDim) throw new Error(`MLP input layout has ${x.length} entries, the weights ${L.inDim}`);
-  while (x.length % 4) x.push('0.0');
   const lines = [];
-  for (let i = 0; i < L.g; i++) lines.push(`  vec4 x${i} = vec4(${x.slice(4 * i, 4 * i + 4).join(', ')});`);
-  for (let j = 0; j < L.q; j++) {
-    const terms = [...Array(L.g).keys()].map((i) => `${mat(L.k0 + 4 * (i * L.q + j))} * x${i}`);
+  for (let j = 0; j < L.q; j++) {  // column c of the input block (c >> 2, j) multiplies input c
+    const terms = x.map((name, c) => `${vec(L.k0 + 4 * ((c >> 2) * L.q + j) + (c & 3))} * ${name}`);
     lines.push(`  vec4 h${j} = act4(${vec(L.bias[0] + j)} + ${terms.join(' + ')});`);
   }
   for (let j = 0; j < L.q; j++) {
-    const terms = [...Array(L.q).keys()].map((i) => `${mat(L.k1 + 4 * (i * L.q + j))} * h${i}`);
+    const terms = [...Array(L.q).keys()].map((i) => mul(L.k1 + 4 * (i * L.q + j), `h${i}`));
     lines.push(`  vec4 u${j} = act4(${vec(L.bias[1] + j)} + ${terms.join(' + ')});`);
   }
-  const out = [...Array(L.q).keys()].map((i) => `${mat(L.k2 + 4 * i)} * u${i}`);
+  const out = [...Array(L.q).keys()].map((i) => mul(L.k2 + 4 * i, `u${i}`));
   lines.push(`  vec4 o = ${vec(L.bias[2])} + ${out.join(' + ')};`);
   return `// The deferred MLP (SNeRG mode): kernels and biases were interpolated at the camera position on the CPU.
 vec3 deferredMlp(vec3 cIn, vec4 feat, vec3 coarseColor, vec4 coarseFeat, vec3 v) {
@@ -298,6 +298,8 @@ void main() {
     ema = uVisibilityDelay * ema + (1.0 - uVisibilityDelay) * vis;
     float stepLen = origStep * (10.0 - 9.0 * sqrt(min(1.0, ema / 0.8)));
     if (tc > q.tEnd) {
+      // past the occupied box in the core, which holds it all: a line leaves a convex box once, so nothing is left
+      if (q.core && occInCore) break;
       if (maxAbs(q.oc + q.tmax * q.dc) >= 2.0 - 1.0e-3) break;
       if (qi >= 7) break;
       if (exits[qi - 1] >= exits[qi] - 16.0 * stepLen) {
