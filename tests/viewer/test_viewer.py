@@ -132,6 +132,28 @@ def test_view_benchmark_prints_ms_per_frame_for_both_sizes(tiny_tree, capsys):
     assert out["kind"] == "octree" and out["ms_per_frame_1280x720"] > 0 and len(out["sizes"][0]["views"]) == 1
 
 
+def test_benchmark_times_frames_on_the_gpu_where_the_timer_query_is_offered():
+    """`view --benchmark --gpu` asks for GPU time (EXT_disjoint_timer_query_webgl2); SwiftShader offers the extension
+    too, so the path runs here: each view gets a GPU figure within the frame's own wall time, and the result says
+    which timer its headline figure is."""
+    from nerfbake.viewer.browser import ViewerPage
+
+    with ViewerPage(shared_data("smerf_tiny")) as page:
+        offered = page.evaluate("() => !!window.nerfbake.app.gl.getExtension('EXT_disjoint_timer_query_webgl2')")
+        timed = page.benchmark(64, 48, frames_per_view=3, warmup=1, gpu_timer=True)
+        plain = page.benchmark(64, 48, frames_per_view=1, warmup=1)
+        assert page.errors == []
+    assert plain["timer"] == "cpu" and "gpu_mean_ms_per_frame" not in plain
+    if not offered:
+        assert timed["timer"] == "cpu" and "not offered" in timed["timer_note"]
+        return
+    assert timed["timer"] == "gpu"
+    for view in timed["views"]:
+        assert 0 < view["gpu_ms_per_frame"] <= 1.1 * view["ms_per_frame"]  # the draws lie inside the timed interval
+    assert timed["gpu_mean_ms_per_frame"] == pytest.approx(
+        sum(v["gpu_ms_per_frame"] for v in timed["views"]) / len(timed["views"]))
+
+
 # --- phones ---------------------------------------------------------------------------------------------------------------
 
 PHONE = {"viewport": {"width": 390, "height": 844}, "device_scale_factor": 3, "is_mobile": True, "has_touch": True}
@@ -178,3 +200,32 @@ def test_touch_controls_move_the_camera_in_phone_emulation():
         frames = page.state()["frames"]
         page.page.wait_for_function(f"() => window.nerfbake.state().frames > {frames + 2}")  # and it keeps drawing
         assert page.errors == []
+
+
+def test_viewer_speed_benchmark_compares_the_frozen_baseline_with_the_current_viewer(tmp_path):
+    """benchmarks/viewer_speed.py opens one scene with the frozen viewer files and the current ones: every figure is
+    there and the two pictures agree within the browser-vs-Python threshold (the speed-ups change no picture);
+    --phone does the same under phone emulation at both of quality=phone's frame sizes."""
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[2] / "benchmarks" / "viewer_speed.py"
+    quick = ["--rounds", "1", "--frames", "1", "--warmup", "1", "--out", str(tmp_path)]
+    run = subprocess.run([sys.executable, str(script), "--assets", str(shared_data("smerf_tiny")), "--size", "96,64",
+                          *quick], capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
+    out = json.loads(run.stdout)
+    assert out["baseline_ms"] > 0 and out["current_ms"] > 0 and out["speedup"] == out["baseline_ms"] / out["current_ms"]
+    assert out["psnr_current_vs_baseline"] >= 35
+    assert all(Path(p).is_file() for p in out["screenshots"].values())
+    run = subprocess.run([sys.executable, str(script), "--assets", str(shared_data("smerf_tiny")), "--phone", *quick],
+                         capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr
+    out = json.loads(run.stdout)
+    assert "quality=phone" in out["query"] and out["device"]["has_touch"]
+    assert (out["resting"]["width"], out["resting"]["height"]) == (390, 844)
+    assert out["moving"]["width"] * out["moving"]["height"] <= 300 * 450 + 600
+    for size in ("resting", "moving"):
+        assert out[size]["current_ms"] > 0 and out[size]["psnr_current_vs_baseline"] >= 35
+        assert out[size]["gpu_bytes"]["current"] > 0
