@@ -276,6 +276,14 @@ def baked_march(
             n += 1
     q = quadrant_setup(o, d, near, near + 0.5 * (exits[0] - near), lo, hi)
     tc = float(0.0)
+    orig_step = scene.triplane_voxel / step_mult
+    if in_core and not misses and wp.max(wp.abs(q.oc[0]), wp.max(wp.abs(q.oc[1]), wp.abs(q.oc[2]))) > 1.0:
+        # a camera outside the core meets the occupied box only in the core: start where the ray enters it, as a
+        # quadrant change there would (visibility is still 1, so the step is orig_step)
+        c1 = 1.0 - 1.0e-5
+        core = slab(wp.vec3(-c1, -c1, -c1), wp.vec3(c1, c1, c1), o, wp.vec3(1.0 / d[0], 1.0 / d[1], 1.0 / d[2]))
+        q = quadrant_setup(o, d, core[0] + 0.1 * (core[1] - core[0]), core[0] + 0.9 * (core[1] - core[0]), lo, hi)
+        tc = q.tmin + 0.5 * orig_step
     qi = int(1)
     t_block = float(-INF)
     vis = float(1.0)
@@ -286,7 +294,6 @@ def baked_march(
     coarse_feat = wp.vec4()
     tres = float(scene.triplane_res)
     max_steps = wp.where(misses, 0, int(step_mult) * int(wp.ceil(wp.sqrt(2.0 * tres * tres))))
-    orig_step = scene.triplane_voxel / step_mult
     min_p = wp.vec3(-2.0, -2.0, -2.0)
     vs_grid = 8.0 * scene.triplane_voxel
     rf = scene.rf_max - scene.rf_min

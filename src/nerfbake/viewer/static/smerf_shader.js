@@ -274,6 +274,14 @@ void main() {
   }
   Quadrant q = quadrantSetup(o, d, nearT, nearT + 0.5 * (exits[0] - nearT));
   float tc = 0.0;
+  float origStep = uTriVoxel / uStepMult;
+  if (occInCore && !misses && !q.core) {
+    // A camera outside the core meets the occupied box only in the core: the march starts where the ray enters it,
+    // as a quadrant change there would (visibility is still 1, so the step is origStep).
+    vec2 core = slab(vec3(-1.0 + 1.0e-5), vec3(1.0 - 1.0e-5), o, 1.0 / d);
+    q = quadrantSetup(o, d, core.x + 0.1 * (core.y - core.x), core.x + 0.9 * (core.y - core.x));
+    tc = q.tmin + 0.5 * origStep;
+  }
   int qi = 1;
   float tBlock = -INF;
   float vis = 1.0;
@@ -283,7 +291,6 @@ void main() {
   vec3 coarseColor = vec3(0.0);
   vec4 coarseFeat = vec4(0.0);
   int maxSteps = misses ? 0 : int(uStepMult) * int(ceil(sqrt(2.0 * uTriRes * uTriRes)));
-  float origStep = uTriVoxel / uStepMult;
   vec3 minP = vec3(-2.0);
   float vsGrid = 8.0 * uTriVoxel;
   float rf = uRangeFeatures.y - uRangeFeatures.x;
