@@ -3,6 +3,11 @@ and CUDA). The spec this follows, in our own words, is ``docs/smerf_viewer.md``;
 
 * rays start on the near plane (t = 1 of the unnormalised camera ray, submodel frame) and are split into the
   regions of the MERF contraction they cross (core cube and six pyramids), where the contracted ray is straight;
+  each region's exit is found in closed form (the regions are convex in world space), not by the official
+  viewer's search over candidate crossings;
+* the box around the occupied factor-8 cells bounds the march: a region is left where its ray leaves the box,
+  and where the box lies in the core a ray that misses it is not marched, a camera outside the core starts at
+  the core, and the march ends past the box (none of these skips a step that could meet an occupied cell);
 * marching takes constant steps in contracted space (triplane voxel / stepMult), enlarged up to 10x as an
   exponential average of visibility drops ("larger steps when occluded");
 * the factor-8 distance grid jumps over empty space, then the bit-packed factor-8 occupancy grid skips empty
