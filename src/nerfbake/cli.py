@@ -658,6 +658,10 @@ def build_parser() -> argparse.ArgumentParser:
     vw.add_argument("--warmup", type=int, default=2, help="discarded animation frames per view")
     vw.add_argument("--max-views", type=int, help="benchmark only the first N views (default: every test view)")
     vw.add_argument("--gpu", action="store_true", help="benchmark on the machine's GPU instead of SwiftShader, timed by the GPU (EXT_disjoint_timer_query_webgl2) where offered")
+    vw.add_argument("--walkthrough", metavar="PATH", help="with --benchmark: fly along a camera path (a test_frames.json, "
+                    "{\"frames\": [{position, forward}, ...]}, or 'test' for the scene's test cameras in order) across "
+                    "submodel boundaries at 512x512 and print per-frame times, frames drawn while loading, blank frames, "
+                    "the most submodels resident and the host cache size")
     vw.add_argument("--json", action="store_true")
     vw.set_defaults(func=cmd_view)
 
@@ -720,6 +724,20 @@ def cmd_view(args) -> int:
     from nerfbake.viewer.server import ViewerServer, find_scene
 
     scene = find_scene(args.scene)
+    if args.walkthrough and not args.benchmark:
+        raise ValueError("--walkthrough flies the viewer headless: give it with --benchmark")
+    if args.benchmark and args.walkthrough:
+        from nerfbake.viewer.browser import read_walkthrough, run_walkthrough
+
+        result = run_walkthrough(scene, read_walkthrough(args.walkthrough), software_gl=not args.gpu)
+        if args.json:
+            _print_json(result)
+        else:
+            print(f"{result['frames']} frames: p50 {result['p50_ms']:.1f} ms, p95 {result['p95_ms']:.1f} ms, max "
+                  f"{result['max_ms']:.1f} ms; {result['frames_while_loading']} drawn while a submodel loaded, "
+                  f"{result['blank_frames']} blank; at most {result['max_resident']} submodels resident, host cache "
+                  f"{result['max_host_cache']}")
+        return 0
     if args.benchmark:
         from nerfbake.viewer.browser import run_benchmark
 

@@ -118,6 +118,34 @@ def test_streaming_across_submodels_keeps_two_resident_and_evicts_lru(rooms_k2):
     assert len(state["resident"]) == 2 and state["active"] == 1
 
 
+
+def test_walkthrough_streams_across_submodels_without_a_blank_frame(rooms_k2, tmp_path, capsys):
+    """`view --benchmark --walkthrough PATH` flies through three submodels of a K = 2 scene: every frame is drawn
+    (the resident submodel keeps drawing while the next one streams in), at most 2 submodels are on the GPU, and the
+    frame-time figures are there."""
+    from nerfbake.smerf.assets import SceneAssets
+    from nerfbake.smerf.baked_render import submodel_center
+
+    _, assets = rooms_k2
+    scene = SceneAssets.open(assets)
+    centers = [submodel_center(scene.params, i).tolist() for i in range(3)]
+    path = tmp_path / "path.json"
+    path.write_text(json.dumps({"frames": [{"position": c, "forward": [0.0, 0.0, -1.0]} for c in centers]}))
+    assert main(["view", str(assets), "--benchmark", "--walkthrough", str(path), "--json"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert out["console_errors"] == [] and out["frames"] == 3 + 2 * 3 and out["path_cameras"] == 3
+    assert out["blank_frames"] == 0 and all(f["drawn"] and f["mean"] > 1.0 for f in out["per_frame"])
+    assert out["max_resident"] <= 2 and set(out["uploads"]) >= {0, 1, 2}  # and any the legs pass through
+    assert set(out["submodels_drawn"]) >= {0, 1, 2}
+    for f in out["per_frame"]:
+        assert f["loading"] is None or f["active"] != f["loading"]  # while one streams, another is drawn
+    assert 0 < out["p50_ms"] <= out["p95_ms"] <= out["max_ms"]
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps({"frames": [{"position": [0, 0, 0]}]}))
+    assert main(["view", str(assets), "--benchmark", "--walkthrough", str(bad)]) == 2
+    assert "bad.json" in capsys.readouterr().err
+
+
 # --- benchmark ----------------------------------------------------------------------------------------------------------
 
 def test_view_benchmark_prints_ms_per_frame_for_both_sizes(tiny_tree, capsys):

@@ -131,3 +131,52 @@ def run_benchmark(scene, sizes=((512, 512), (1280, 720)), frame_mult: int = 1, f
         out[f"ms_per_frame_{r['width']}x{r['height']}"] = r.get("gpu_mean_ms_per_frame", r["mean_ms_per_frame"])
         out[f"wall_ms_per_frame_{r['width']}x{r['height']}"] = r["mean_ms_per_frame"]
     return out
+
+
+def read_walkthrough(path) -> list[dict] | None:
+    """A camera path file for ``nerfbake view --walkthrough``: ``test`` (the scene's test cameras in order), a
+    ``test_frames.json`` (``{"test_frames": [{position, rotation, projection}, ...]}``), or ``{"frames": [...]}`` /
+    a list of ``{"position": [x, y, z], "forward": [x, y, z]}`` poses in the viewer's frame."""
+    import json
+    from pathlib import Path
+
+    if str(path) == "test":
+        return None
+    p = Path(path)
+    try:
+        data = json.loads(p.read_text())
+    except FileNotFoundError:
+        raise FileNotFoundError(f"{p}: no such walkthrough file; give a JSON camera path or 'test'") from None
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ValueError(f"{p}: not a JSON camera path ({exc}); give test_frames.json, {{\"frames\": [...]}} or 'test'") from None
+    frames = data.get("test_frames", data.get("frames")) if isinstance(data, dict) else data
+    if not isinstance(frames, list) or len(frames) < 2:
+        raise ValueError(f"{p}: a walkthrough needs a list of at least 2 cameras under 'test_frames' or 'frames'")
+    for i, f in enumerate(frames):
+        ok = isinstance(f, dict) and _numbers(f.get("position"), 3) and (
+            _numbers(f.get("forward"), 3) or (_numbers(f.get("rotation"), 16) and _numbers(f.get("projection"), 16)))
+        if not ok:
+            raise ValueError(f"{p}: camera {i} needs position [3] and forward [3] (or rotation [16] and projection [16])")
+    return frames
+
+
+def _numbers(v, n: int) -> bool:
+    import math
+
+    return isinstance(v, list) and len(v) == n and all(isinstance(x, (int, float)) and math.isfinite(x) for x in v)
+
+
+def run_walkthrough(scene, path: list[dict] | None = None, size=(512, 512), between: int = 3,
+                    software_gl: bool = True) -> dict:
+    """Fly the viewer along a camera path (None: the scene's test cameras in order) with ``between`` interpolated
+    frames per leg, streaming submodels as the interactive viewer does; per-frame times (p50/p95/max), frames drawn
+    while a submodel was loading, blank frames, the most submodels resident on the GPU and the host cache size."""
+    with ViewerPage(scene, size=(64, 64), software_gl=software_gl) as page:
+        out = page.evaluate("([p, w, h, b]) => window.nerfbake.walkthrough(p, w, h, b)", [path, size[0], size[1], between])
+        out["console_errors"] = page.errors
+        out["renderer"] = page.evaluate("() => { const gl = window.nerfbake.app.gl; "
+                                        "const d = gl.getExtension('WEBGL_debug_renderer_info'); "
+                                        "return d ? gl.getParameter(d.UNMASKED_RENDERER_WEBGL) : gl.getParameter(gl.RENDERER); }")
+    out["scene"] = str(getattr(scene, "root", scene))
+    return out
+

@@ -216,6 +216,22 @@ class App {
     return toBase64(px);
   }
 
+  // A walkthrough's cameras: the benchmark views in order, or a path of test_frames.json entries (position, rotation
+  // and projection as 16 column-major numbers each) or of {position, forward} poses seen with the viewer's lens.
+  pathCameras(path, width, height) {
+    if (!path) return this.benchmarkViews(width, height);
+    return path.map((p, i) => {
+      if (!Array.isArray(p.position) || p.position.length !== 3) throw new ViewerError(`walkthrough camera ${i}: needs a position [x, y, z]`);
+      if (p.rotation && p.projection) {
+        const m = p.rotation;
+        return {position: p.position.slice(), rotation: [[m[0], m[4], m[8]], [m[1], m[5], m[9]], [m[2], m[6], m[10]]],
+                invProjection: invert4(p.projection)};
+      }
+      if (!Array.isArray(p.forward) || p.forward.length !== 3) throw new ViewerError(`walkthrough camera ${i}: needs forward [x, y, z] or rotation and projection`);
+      return cameraFor({position: p.position.slice(), rotation: lookRotation(p.forward, this.controls.up)}, width, height, this.vfov, this.near);
+    });
+  }
+
   benchmarkViews(width, height) {
     if (this.scene.kind === 'smerf') {
       return this.scene.testFrames.map((_, i) => this.scene.testCamera(i));
@@ -233,6 +249,54 @@ class App {
   // warm-up frames are discarded; the result is the mean frame time per view. With `gpuTimer` and a browser that
   // offers EXT_disjoint_timer_query_webgl2, every timed frame is also measured on the GPU itself (a TIME_ELAPSED
   // query around its draws), so figures on a real GPU are GPU time, not requestAnimationFrame jitter.
+  // Fly the camera along a path (cameras as benchmarkViews gives them), `between` frames interpolated between
+  // consecutive ones, as the interactive loop does: the scene streams the submodel of each position while the one
+  // resident keeps drawing. Per frame: draw time, whether anything was drawn and its mean brightness (a blank
+  // frame is 0), the submodel drawn and the one loading, the resident submodels and the host cache.
+  async walkthrough(path, width, height, between = 3) {
+    this.running = false;
+    const gl = this.gl;
+    const target = new RenderTarget(gl, width, height);
+    const frames = [];
+    const lerp = (a, b, t) => a.map((v, i) => v + (b[i] - v) * t);
+    const forwardOf = (cam) => [-cam.rotation[0][2], -cam.rotation[1][2], -cam.rotation[2][2]];
+    const up = this.controls.up;
+    for (let i = 0; i < path.length; i++) {
+      for (let k = 0; k <= (i + 1 < path.length ? between : 0); k++) {
+        const t = k / (between + 1);
+        const a = path[i], b = path[Math.min(i + 1, path.length - 1)];
+        const cam = k === 0 ? a : {...a, position: lerp(a.position, b.position, t),
+                                       rotation: lookRotation(lerp(forwardOf(a), forwardOf(b), t), up)};
+        this.scene.update(cam.position);
+        const t0 = performance.now();
+        const drawn = this.scene.draw(cam, target, width, height);
+        finish(gl);
+        const ms = performance.now() - t0;
+        const px = target.read();
+        let sum = 0;
+        for (let j = 0; j < px.length; j += 4) sum += px[j] + px[j + 1] + px[j + 2];
+        const s = this.scene.state();
+        frames.push({ms, drawn: !!drawn, mean: sum / (width * height * 3), active: s.active ?? null,
+                     loading: s.loading ?? null, resident: s.resident || [], host_cache: (s.hostCache || []).length});
+        await new Promise(requestAnimationFrame);  // let fetches and uploads go on between frames, as on screen
+      }
+    }
+    target.dispose();
+    this.running = true;
+    requestAnimationFrame((t) => this.loop(t));
+    const times = frames.map((f) => f.ms);
+    return {
+      width, height, frames: frames.length, path_cameras: path.length, between,
+      p50_ms: percentile(times, 50), p95_ms: percentile(times, 95), max_ms: Math.max(...times),
+      frames_while_loading: frames.filter((f) => f.loading !== null).length,
+      blank_frames: frames.filter((f) => !f.drawn || f.mean < 1.0).length,
+      max_resident: Math.max(...frames.map((f) => f.resident.length)),
+      max_host_cache: Math.max(...frames.map((f) => f.host_cache)),
+      submodels_drawn: [...new Set(frames.map((f) => f.active))],
+      uploads: this.scene.state().uploads || [], per_frame: frames,
+    };
+  }
+
   async benchmark(width, height, frameMult = 1, framesPerView = 6, warmup = 2, maxViews = 0, gpuTimer = false) {
     this.running = false;
     const gl = this.gl;
@@ -291,6 +355,14 @@ class App {
   }
 }
 
+// Percentile (0..100) of a list of numbers, linear between ranks.
+function percentile(values, q) {
+  const v = [...values].sort((a, b) => a - b);
+  const r = (q / 100) * (v.length - 1);
+  const lo = Math.floor(r);
+  return v[lo] + (v[Math.min(lo + 1, v.length - 1)] - v[lo]) * (r - lo);
+}
+
 // Nanoseconds of each finished TIME_ELAPSED query, or null when the GPU reported a disjoint operation (the
 // figures would be meaningless then); polls once per animation frame as the extension requires.
 async function queryResults(gl, timer, queries) {
@@ -319,6 +391,8 @@ window.nerfbake = {
   setPose: (position, forward) => app.controls.setPose(position, forward),
   lookRotation,
   benchmark: (w, h, k, n, warm, views, gpuTimer) => app.benchmark(w, h, k, n, warm, views, gpuTimer),
+  // path: null for the scene's test cameras in order, or [{position, forward} | {position, rotation, projection}]
+  walkthrough: (path, w, h, between) => app.walkthrough(app.pathCameras(path, w, h), w, h, between),
   // The camera controls' state (tests drive them with touch events and read this).
   controls: () => ({...app.controls.camera(), target: app.controls.target.slice(), distance: app.controls.distance,
                     yaw: app.controls.yaw, pitch: app.controls.pitch}),
