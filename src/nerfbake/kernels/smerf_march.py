@@ -44,8 +44,13 @@ def major_axis(v: wp.vec3) -> int:
 
 
 @wp.func
+def max_abs(v: wp.vec3) -> float:
+    return wp.max(wp.abs(v[0]), wp.max(wp.abs(v[1]), wp.abs(v[2])))
+
+
+@wp.func
 def contract(x: wp.vec3) -> wp.vec3:
-    m = wp.max(wp.abs(x[0]), wp.max(wp.abs(x[1]), wp.abs(x[2])))
+    m = max_abs(x)
     if m <= 1.0:
         return x
     s = 1.0 / m
@@ -57,7 +62,7 @@ def contract(x: wp.vec3) -> wp.vec3:
 
 @wp.func
 def uncontract(z: wp.vec3) -> wp.vec3:
-    m = wp.max(wp.abs(z[0]), wp.max(wp.abs(z[1]), wp.abs(z[2])))
+    m = max_abs(z)
     if m <= 1.0:
         return z
     inv = wp.max(1.0e-6, 2.0 - m)
@@ -78,6 +83,13 @@ def slab(lo: wp.vec3, hi: wp.vec3, o: wp.vec3, inv_d: wp.vec3) -> wp.vec2:
 
 
 @wp.func
+def core_span(o: wp.vec3, inv_d: wp.vec3) -> wp.vec2:
+    """[t in, t out] of the ray in the core box |x| <= 1 - 1e-5 (empty when t in > t out)."""
+    c1 = 1.0 - 1.0e-5
+    return slab(wp.vec3(-c1, -c1, -c1), wp.vec3(c1, c1, c1), o, inv_d)
+
+
+@wp.func
 def half_space(iv: wp.vec2, no: float, nd: float, c: float) -> wp.vec2:
     """The interval iv of t cut to where n.(o + t d) >= c, given no = n.o and nd = n.d."""
     if nd > 0.0:
@@ -90,15 +102,14 @@ def half_space(iv: wp.vec2, no: float, nd: float, c: float) -> wp.vec2:
 
 
 @wp.func
-def region_exit(o: wp.vec3, d: wp.vec3, k: int) -> float:
+def region_exit(o: wp.vec3, d: wp.vec3, inv_d: wp.vec3, k: int) -> float:
     """The t where the ray leaves region k (0 core, 1..6 = +x,+y,+z,-x,-y,-z), or -INF where it never is in it.
 
     Each region is convex in world space, so the ray's stretch in it is one interval cut out by half-spaces: the
     core is the box |x| <= 1 - 1e-5; outer region (axis a, sign s) is s x_a >= 1, s x_a <= 1e4 (contracted
     2 - 1e-4) and s x_a >= |x_b| for both other axes. The shader computes the same closed form."""
     if k == 0:
-        c1 = 1.0 - 1.0e-5
-        t = slab(wp.vec3(-c1, -c1, -c1), wp.vec3(c1, c1, c1), o, wp.vec3(1.0 / d[0], 1.0 / d[1], 1.0 / d[2]))
+        t = core_span(o, inv_d)
         if t[0] <= t[1]:
             return t[1]
         return -INF
@@ -123,12 +134,14 @@ def region_exit(o: wp.vec3, d: wp.vec3, k: int) -> float:
 @wp.struct
 class Quadrant:
     """One region's straight contracted ray ``oc + t dc`` on [tmin, tmax]; ``t_end``: where it leaves the occupied
-    box for good (-INF if it never meets it): no later step can land in an occupied cell."""
+    box for good (-INF if it never meets it): no later step can land in an occupied cell; ``core``: the region is
+    the unit box."""
     oc: wp.vec3
     dc: wp.vec3
     tmin: float
     tmax: float
     t_end: float
+    core: int
 
 
 @wp.func
@@ -136,7 +149,9 @@ def quadrant_setup(o: wp.vec3, d: wp.vec3, tp: float, tq: float, occ_lo: wp.vec3
     xp = o + tp * d
     lo = wp.vec3(-1.0, -1.0, -1.0)
     hi = wp.vec3(1.0, 1.0, 1.0)
-    if wp.max(wp.abs(xp[0]), wp.max(wp.abs(xp[1]), wp.abs(xp[2]))) > 1.0:
+    q = Quadrant()
+    q.core = wp.where(max_abs(xp) <= 1.0, 1, 0)
+    if q.core == 0:
         a = major_axis(xp)
         if xp[a] > 0.0:
             lo[a] = 1.0
@@ -144,7 +159,6 @@ def quadrant_setup(o: wp.vec3, d: wp.vec3, tp: float, tq: float, occ_lo: wp.vec3
         else:
             lo[a] = -2.0
             hi[a] = -1.0
-    q = Quadrant()
     q.oc = contract(xp)
     q.dc = wp.normalize(contract(o + tq * d) - q.oc)
     inv = wp.vec3(1.0 / q.dc[0], 1.0 / q.dc[1], 1.0 / q.dc[2])
@@ -266,12 +280,12 @@ def baked_march(
     # no occupied cell: no regions, no march, only the deferred MLP's background.
     lo = scene.occ_lo
     hi = scene.occ_hi
-    in_core = wp.max(wp.abs(lo[0]), wp.max(wp.abs(lo[1]), wp.abs(lo[2]))) <= 1.0 and wp.max(
-        wp.abs(hi[0]), wp.max(wp.abs(hi[1]), wp.abs(hi[2]))) <= 1.0
-    hit = slab(lo, hi, o, wp.vec3(1.0 / d[0], 1.0 / d[1], 1.0 / d[2]))
+    in_core = max_abs(lo) <= 1.0 and max_abs(hi) <= 1.0
+    inv_d = wp.vec3(1.0 / d[0], 1.0 / d[1], 1.0 / d[2])
+    hit = slab(lo, hi, o, inv_d)
     misses = in_core and (hit[0] > hit[1] or hit[1] < near)
     for k in range(wp.where(misses, 0, 7)):
-        t = region_exit(o, d, k)
+        t = region_exit(o, d, inv_d, k)
         if t >= near:
             j = n
             while j > 0 and exits[j - 1] > t:
@@ -282,11 +296,10 @@ def baked_march(
     q = quadrant_setup(o, d, near, near + 0.5 * (exits[0] - near), lo, hi)
     tc = float(0.0)
     orig_step = scene.triplane_voxel / step_mult
-    if in_core and not misses and wp.max(wp.abs(q.oc[0]), wp.max(wp.abs(q.oc[1]), wp.abs(q.oc[2]))) > 1.0:
+    if in_core and not misses and q.core == 0:
         # a camera outside the core meets the occupied box only in the core: start where the ray enters it, as a
         # quadrant change there would (visibility is still 1, so the step is orig_step)
-        c1 = 1.0 - 1.0e-5
-        core = slab(wp.vec3(-c1, -c1, -c1), wp.vec3(c1, c1, c1), o, wp.vec3(1.0 / d[0], 1.0 / d[1], 1.0 / d[2]))
+        core = core_span(o, inv_d)
         q = quadrant_setup(o, d, core[0] + 0.1 * (core[1] - core[0]), core[0] + 0.9 * (core[1] - core[0]), lo, hi)
         tc = q.tmin + 0.5 * orig_step
     qi = int(1)
@@ -312,10 +325,9 @@ def baked_march(
         step = orig_step * (10.0 - 9.0 * wp.sqrt(wp.min(1.0, ema / 0.8)))
         if tc > q.t_end:
             # past the occupied box in the core, which holds it all: a line leaves a convex box once
-            if in_core and wp.max(wp.abs(q.oc[0]), wp.max(wp.abs(q.oc[1]), wp.abs(q.oc[2]))) <= 1.0:
+            if in_core and q.core == 1:
                 break
-            z_exit = q.oc + q.tmax * q.dc
-            if wp.max(wp.abs(z_exit[0]), wp.max(wp.abs(z_exit[1]), wp.abs(z_exit[2]))) >= 2.0 - 1.0e-3:
+            if max_abs(q.oc + q.tmax * q.dc) >= 2.0 - 1.0e-3:
                 break
             if qi >= 7:
                 break

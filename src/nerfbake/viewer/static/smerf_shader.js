@@ -151,6 +151,9 @@ vec2 slab(vec3 lo, vec3 hi, vec3 o, vec3 invD) {
   return vec2(max(max(mn.x, mn.y), mn.z), min(min(mx.x, mx.y), mx.z));
 }
 
+// [t in, t out] of the ray in the core box |x| <= 1 - 1e-5 (empty when t in > t out).
+vec2 coreSpan(vec3 o, vec3 invD) { return slab(vec3(-1.0 + 1.0e-5), vec3(1.0 - 1.0e-5), o, invD); }
+
 // Intersect the interval iv of t with the half-line where n.(o + t d) >= c, given no = n.o and nd = n.d.
 vec2 halfSpace(vec2 iv, float no, float nd, float c) {
   if (nd > 0.0) return vec2(max(iv.x, (c - no) / nd), iv.y);
@@ -162,10 +165,10 @@ vec2 halfSpace(vec2 iv, float no, float nd, float c) {
 // is convex in world space, so its stretch of the ray is one interval, cut out by closed-form half-spaces: the core
 // is the box |x| <= c1; outer region (axis a, sign s) is s x_a >= 1, s x_a <= 1e4 (contracted 2 - 1e-4) and
 // s x_a >= |x_b| for the two other axes. This replaces testing contract() at 12 candidate crossings per region
-// (the old regionT/checkedT search) with a few divisions; the exits agree to float precision.
-float regionExit(vec3 o, vec3 d, int k) {
+// with a few divisions; the exits agree to float precision.
+float regionExit(vec3 o, vec3 d, vec3 invD, int k) {
   if (k == 0) {
-    vec2 t = slab(vec3(-1.0 + 1.0e-5), vec3(1.0 - 1.0e-5), o, 1.0 / d);
+    vec2 t = coreSpan(o, invD);
     return t.x <= t.y ? t.y : -INF;
   }
   int a = (k - 1) % 3;
@@ -261,10 +264,11 @@ void main() {
   // Where the occupied box lies in the core (contracted = world there), a ray that misses it in world space can
   // meet no occupied cell: it skips the regions and the march and keeps only the deferred MLP's background.
   bool occInCore = maxAbs(uOccLo) <= 1.0 && maxAbs(uOccHi) <= 1.0;
-  vec2 occWorld = slab(uOccLo, uOccHi, o, 1.0 / d);
+  vec3 invD = 1.0 / d;
+  vec2 occWorld = slab(uOccLo, uOccHi, o, invD);
   bool misses = occInCore && (occWorld.x > occWorld.y || occWorld.y < nearT);
   for (int k = 0; k < (misses ? 0 : 7); k++) {
-    float t = regionExit(o, d, k);
+    float t = regionExit(o, d, invD, k);
     if (t >= nearT) {
       int j = n;
       while (j > 0 && exits[j - 1] > t) { exits[j] = exits[j - 1]; j--; }
@@ -278,7 +282,7 @@ void main() {
   if (occInCore && !misses && !q.core) {
     // A camera outside the core meets the occupied box only in the core: the march starts where the ray enters it,
     // as a quadrant change there would (visibility is still 1, so the step is origStep).
-    vec2 core = slab(vec3(-1.0 + 1.0e-5), vec3(1.0 - 1.0e-5), o, 1.0 / d);
+    vec2 core = coreSpan(o, invD);
     q = quadrantSetup(o, d, core.x + 0.1 * (core.y - core.x), core.x + 0.9 * (core.y - core.x));
     tc = q.tmin + 0.5 * origStep;
   }
