@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from nerfbake.viewer.browser import ViewerPage
+from nerfbake.viewer.browser import PHONE_EMULATION, ViewerPage
 from nerfbake.viewer.server import STATIC
 
 BASELINE = Path(__file__).resolve().parent / "viewer_baseline" / "static"
@@ -42,15 +42,13 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
     return float("inf") if mse == 0 else 10 * np.log10(255.0**2 / mse)
 
 
-# Playwright's phone emulation: an iPhone-sized portrait viewport at device scale 3 with touch.
-PHONE = {"viewport": {"width": 390, "height": 844}, "device_scale_factor": 3, "is_mobile": True, "has_touch": True}
 PHONE_MOVING_PIXELS = 300 * 450  # main.js QUALITY.phone: the most pixels drawn while the camera moves
 
 
 def phone_sizes() -> dict[str, tuple[int, int]]:
     """The two frame sizes quality=phone draws on the emulated phone: the full viewport once the camera rests, and
     the reduced size main.js picks while it moves."""
-    w, h = PHONE["viewport"]["width"], PHONE["viewport"]["height"]
+    w, h = PHONE_EMULATION["viewport"]["width"], PHONE_EMULATION["viewport"]["height"]
     f = max(1.0, (w * h / PHONE_MOVING_PIXELS) ** 0.5)
     return {"resting": (w, h), "moving": (max(1, round(w / f)), max(1, round(h / f)))}
 
@@ -59,8 +57,8 @@ def measure(static: Path, args, size) -> tuple[list[float], np.ndarray, str, int
     """Frame times (ms, one per repeat) from one page load, its screenshot, the GL renderer string and the GPU bytes
     of the scene's textures."""
     w, h = size
-    device = PHONE if args.phone else None
-    page_size = (PHONE["viewport"]["width"], PHONE["viewport"]["height"]) if args.phone else (256, 256)
+    device = PHONE_EMULATION if args.phone else None
+    page_size = phone_sizes()["resting"] if args.phone else (256, 256)
     with ViewerPage(args.assets, query=args.query, size=page_size, software_gl=not args.gpu, static=static,
                     device=device) as page:
         b64 = page.evaluate(RENDER_VIEW, [args.view, w, h])
@@ -99,7 +97,7 @@ def main() -> None:
         report = {}
         for name, size in phone_sizes().items():
             report[name] = compare(args, size, out / name)
-        print(json.dumps({"assets": str(args.assets), "device": PHONE, "query": args.query, **report}, indent=2))
+        print(json.dumps({"assets": str(args.assets), "device": PHONE_EMULATION, "query": args.query, **report}, indent=2))
         return
     size = tuple(int(v) for v in args.size.split(","))
     print(json.dumps({"assets": str(args.assets), "query": args.query, **compare(args, size, out)}, indent=2))

@@ -184,16 +184,13 @@ def test_benchmark_times_frames_on_the_gpu_where_the_timer_query_is_offered():
 
 # --- phones ---------------------------------------------------------------------------------------------------------------
 
-PHONE = {"viewport": {"width": 390, "height": 844}, "device_scale_factor": 3, "is_mobile": True, "has_touch": True}
-
-
 def test_touch_controls_move_the_camera_in_phone_emulation():
     """One finger orbits, a pinch zooms, two fingers moving together pan: driven by touch events that go through
     chromium's own input pipeline (DevTools Input.dispatchTouchEvent), as a phone's screen sends them."""
-    from nerfbake.viewer.browser import ViewerPage
+    from nerfbake.viewer.browser import PHONE_EMULATION, ViewerPage
 
     with ViewerPage(shared_data("smerf_tiny"), query="quality=phone&mouseMode=orbit", size=(390, 844),
-                    device=PHONE) as page:
+                    device=PHONE_EMULATION) as page:
         cdp = page.page.context.new_cdp_session(page.page)
 
         def gesture(paths):  # paths: one list of (x, y) per finger, all the same length

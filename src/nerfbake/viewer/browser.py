@@ -4,9 +4,12 @@ from __future__ import annotations
 
 import base64
 import contextlib
+import json
+import math
 import os
 import shutil
 import tempfile
+from pathlib import Path
 
 import numpy as np
 
@@ -17,6 +20,9 @@ CHROMIUM_FLAGS = [
     "--no-first-run", "--disable-quic", "--ignore-gpu-blocklist",
 ]
 SOFTWARE_GL_FLAGS = ["--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
+# Playwright's phone emulation (ViewerPage's ``device``): an iPhone-sized portrait viewport at scale 3 with touch.
+PHONE_EMULATION = {"viewport": {"width": 390, "height": 844}, "device_scale_factor": 3, "is_mobile": True,
+                   "has_touch": True}
 
 
 def chromium_path() -> str:
@@ -137,9 +143,6 @@ def read_walkthrough(path) -> list[dict] | None:
     """A camera path file for ``nerfbake view --walkthrough``: ``test`` (the scene's test cameras in order), a
     ``test_frames.json`` (``{"test_frames": [{position, rotation, projection}, ...]}``), or ``{"frames": [...]}`` /
     a list of ``{"position": [x, y, z], "forward": [x, y, z]}`` poses in the viewer's frame."""
-    import json
-    from pathlib import Path
-
     if str(path) == "test":
         return None
     p = Path(path)
@@ -161,8 +164,6 @@ def read_walkthrough(path) -> list[dict] | None:
 
 
 def _numbers(v, n: int) -> bool:
-    import math
-
     return isinstance(v, list) and len(v) == n and all(isinstance(x, (int, float)) and math.isfinite(x) for x in v)
 
 
@@ -174,9 +175,6 @@ def run_walkthrough(scene, path: list[dict] | None = None, size=(512, 512), betw
     with ViewerPage(scene, size=(64, 64), software_gl=software_gl) as page:
         out = page.evaluate("([p, w, h, b]) => window.nerfbake.walkthrough(p, w, h, b)", [path, size[0], size[1], between])
         out["console_errors"] = page.errors
-        out["renderer"] = page.evaluate("() => { const gl = window.nerfbake.app.gl; "
-                                        "const d = gl.getExtension('WEBGL_debug_renderer_info'); "
-                                        "return d ? gl.getParameter(d.UNMASKED_RENDERER_WEBGL) : gl.getParameter(gl.RENDERER); }")
     out["scene"] = str(getattr(scene, "root", scene))
     return out
 

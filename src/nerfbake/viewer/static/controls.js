@@ -20,6 +20,9 @@ export function lookRotation(forward, up) {
   return [[r[0], u[0], -f[0]], [r[1], u[1], -f[1]], [r[2], u[2], -f[2]]];
 }
 
+// The viewing direction (the camera's -z axis) of a camera-to-world rotation given as rows.
+export function viewForward(rotation) { return [-rotation[0][2], -rotation[1][2], -rotation[2][2]]; }
+
 export class Controls {
   constructor(element, {mode = 'orbit', up = [0, 1, 0], target = [0, 0, 0], distance = 1, position = null,
     forward = null, speed = 1} = {}) {

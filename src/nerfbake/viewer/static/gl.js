@@ -157,6 +157,12 @@ export function drawFullscreen(gl, target, width, height) {
   gl.drawArrays(gl.TRIANGLES, 0, 3);
 }
 
+// The GPU's name as the driver reports it (the unmasked renderer string where the browser gives it).
+export function rendererName(gl) {
+  const dbg = gl.getExtension('WEBGL_debug_renderer_info');
+  return dbg ? gl.getParameter(dbg.UNMASKED_RENDERER_WEBGL) : gl.getParameter(gl.RENDERER);
+}
+
 // Wait for the GPU: a one-pixel read back forces every queued draw to finish.
 export function finish(gl) {
   const px = new Uint8Array(4);

@@ -1,10 +1,10 @@
 // nerfbake viewer: one page for SMERF asset directories and PlenOctree .npz files, served by `nerfbake view`.
 // URL parameters: quality=phone|low|medium|high, s=W,H (render size), mouseMode=orbit|fly, vfovy, near, up=x|y|z|-z,
 // submodelCacheSize, stepMult, exposure, view=I (a test view), benchmark=1, frameMult=K, maxTextureSize.
-import {RenderTarget, ViewerError, createContext, fetchJSON, finish} from './gl.js';
-import {Controls, UP_AXES, lookRotation} from './controls.js';
+import {RenderTarget, ViewerError, createContext, fetchJSON, finish, rendererName} from './gl.js';
+import {Controls, UP_AXES, lookRotation, viewForward} from './controls.js';
 import {OctreeScene} from './octree.js';
-import {SmerfScene, invert4, perspective} from './smerf.js';
+import {SmerfScene, invert4, perspective, testFrameCamera} from './smerf.js';
 
 const params = new URLSearchParams(location.search);
 const QUALITY = {phone: 300 * 450, low: 600 * 250, medium: 1200 * 640, high: Infinity};  // max pixels while moving
@@ -66,7 +66,7 @@ class App {
       this.scene.onError = fail;
       if (params.get('exposure')) this.scene.exposureOverride = Number(params.get('exposure'));
       const first = this.scene.testFrames.length ? this.scene.testCamera(Number(params.get('view') || 0)) : null;
-      const forward = first ? [-first.rotation[0][2], -first.rotation[1][2], -first.rotation[2][2]] : [0, 0, -1];
+      const forward = first ? viewForward(first.rotation) : [0, 0, -1];
       const position = first ? first.position : [0, 0, 0];
       // orbit the scene's centre, or a point ahead where the camera stands at the centre itself
       const target = Math.hypot(...position) > 0.1 ? [0, 0, 0] : position.map((v, a) => v + forward[a]);
@@ -153,10 +153,8 @@ class App {
     const [w, h] = this.size;
     const px = new Uint8Array(w * h * 4);
     gl.readPixels(0, 0, w, h, gl.RGBA, gl.UNSIGNED_BYTE, px);
-    let sum = 0;
-    for (let i = 0; i < px.length; i += 4) sum += px[i] + px[i + 1] + px[i + 2];
     const s = this.scene.state();
-    this.frameLog.push({frame: this.frames, drawn: !!drawn, mean: sum / (w * h * 3), active: s.active ?? null,
+    this.frameLog.push({frame: this.frames, drawn: !!drawn, mean: meanBrightness(px), active: s.active ?? null,
                         resident: s.resident || [], loading: s.loading ?? null});
   }
 
@@ -222,11 +220,7 @@ class App {
     if (!path) return this.benchmarkViews(width, height);
     return path.map((p, i) => {
       if (!Array.isArray(p.position) || p.position.length !== 3) throw new ViewerError(`walkthrough camera ${i}: needs a position [x, y, z]`);
-      if (p.rotation && p.projection) {
-        const m = p.rotation;
-        return {position: p.position.slice(), rotation: [[m[0], m[4], m[8]], [m[1], m[5], m[9]], [m[2], m[6], m[10]]],
-                invProjection: invert4(p.projection)};
-      }
+      if (p.rotation && p.projection) return testFrameCamera(p);
       if (!Array.isArray(p.forward) || p.forward.length !== 3) throw new ViewerError(`walkthrough camera ${i}: needs forward [x, y, z] or rotation and projection`);
       return cameraFor({position: p.position.slice(), rotation: lookRotation(p.forward, this.controls.up)}, width, height, this.vfov, this.near);
     });
@@ -245,10 +239,6 @@ class App {
     });
   }
 
-  // Each view is drawn `frameMult` times per animation frame so the display refresh does not cap the figure;
-  // warm-up frames are discarded; the result is the mean frame time per view. With `gpuTimer` and a browser that
-  // offers EXT_disjoint_timer_query_webgl2, every timed frame is also measured on the GPU itself (a TIME_ELAPSED
-  // query around its draws), so figures on a real GPU are GPU time, not requestAnimationFrame jitter.
   // Fly the camera along a path (cameras as benchmarkViews gives them), `between` frames interpolated between
   // consecutive ones, as the interactive loop does: the scene streams the submodel of each position while the one
   // resident keeps drawing. Per frame: draw time, whether anything was drawn and its mean brightness (a blank
@@ -259,24 +249,20 @@ class App {
     const target = new RenderTarget(gl, width, height);
     const frames = [];
     const lerp = (a, b, t) => a.map((v, i) => v + (b[i] - v) * t);
-    const forwardOf = (cam) => [-cam.rotation[0][2], -cam.rotation[1][2], -cam.rotation[2][2]];
     const up = this.controls.up;
     for (let i = 0; i < path.length; i++) {
       for (let k = 0; k <= (i + 1 < path.length ? between : 0); k++) {
         const t = k / (between + 1);
         const a = path[i], b = path[Math.min(i + 1, path.length - 1)];
         const cam = k === 0 ? a : {...a, position: lerp(a.position, b.position, t),
-                                       rotation: lookRotation(lerp(forwardOf(a), forwardOf(b), t), up)};
+                                       rotation: lookRotation(lerp(viewForward(a.rotation), viewForward(b.rotation), t), up)};
         this.scene.update(cam.position);
         const t0 = performance.now();
         const drawn = this.scene.draw(cam, target, width, height);
         finish(gl);
         const ms = performance.now() - t0;
-        const px = target.read();
-        let sum = 0;
-        for (let j = 0; j < px.length; j += 4) sum += px[j] + px[j + 1] + px[j + 2];
         const s = this.scene.state();
-        frames.push({ms, drawn: !!drawn, mean: sum / (width * height * 3), active: s.active ?? null,
+        frames.push({ms, drawn: !!drawn, mean: meanBrightness(target.read()), active: s.active ?? null,
                      loading: s.loading ?? null, resident: s.resident || [], host_cache: (s.hostCache || []).length});
         await new Promise(requestAnimationFrame);  // let fetches and uploads go on between frames, as on screen
       }
@@ -293,10 +279,14 @@ class App {
       max_resident: Math.max(...frames.map((f) => f.resident.length)),
       max_host_cache: Math.max(...frames.map((f) => f.host_cache)),
       submodels_drawn: [...new Set(frames.map((f) => f.active))],
-      uploads: this.scene.state().uploads || [], per_frame: frames,
+      uploads: this.scene.state().uploads || [], per_frame: frames, renderer: rendererName(gl),
     };
   }
 
+  // Each view is drawn `frameMult` times per animation frame so the display refresh does not cap the figure;
+  // warm-up frames are discarded; the result is the mean frame time per view. With `gpuTimer` and a browser that
+  // offers EXT_disjoint_timer_query_webgl2, every timed frame is also measured on the GPU itself (a TIME_ELAPSED
+  // query around its draws), so figures on a real GPU are GPU time, not requestAnimationFrame jitter.
   async benchmark(width, height, frameMult = 1, framesPerView = 6, warmup = 2, maxViews = 0, gpuTimer = false) {
     this.running = false;
     const gl = this.gl;
@@ -340,10 +330,9 @@ class App {
     this.running = true;
     requestAnimationFrame((t) => this.loop(t));
     const mean = perView.reduce((a, v) => a + v.ms_per_frame, 0) / perView.length;
-    const dbg = gl.getExtension('WEBGL_debug_renderer_info');
     const out = {width, height, frame_mult: frameMult, frames_per_view: framesPerView, warmup_frames: warmup,
                  mean_ms_per_frame: mean, fps: 1000 / mean, views: perView, kind: this.scene.kind,
-                 renderer: dbg ? gl.getParameter(dbg.UNMASKED_RENDERER_WEBGL) : gl.getParameter(gl.RENDERER),
+                 renderer: rendererName(gl),
                  gpu_bytes: this.scene.gpuBytes(), timer: 'cpu'};
     if (gpuTimer && !timer) out.timer_note = 'EXT_disjoint_timer_query_webgl2 is not offered: CPU wall time after finish()';
     else if (disjoint) out.timer_note = 'the GPU timer reported a disjoint operation: CPU wall time after finish()';
@@ -353,6 +342,13 @@ class App {
     }
     return out;
   }
+}
+
+// Mean of the R, G and B bytes of RGBA pixels (a blank, black frame is 0).
+function meanBrightness(px) {
+  let sum = 0;
+  for (let i = 0; i < px.length; i += 4) sum += px[i] + px[i + 1] + px[i + 2];
+  return sum / (px.length / 4 * 3);
 }
 
 // Percentile (0..100) of a list of numbers, linear between ranks.

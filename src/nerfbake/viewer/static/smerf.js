@@ -223,9 +223,7 @@ export class SmerfScene {
   testCamera(i) {
     const f = this.testFrames[i];
     if (!f) throw new ViewerError(`test_frames.json has no view ${i}`);
-    const m = f.rotation;  // column-major 4x4
-    const rotation = [[m[0], m[4], m[8]], [m[1], m[5], m[9]], [m[2], m[6], m[10]]];
-    return {position: f.position.slice(), rotation, invProjection: invert4(f.projection)};
+    return testFrameCamera(f);
   }
 
   // bytes of the resident submodels' textures as allocated (RGBA8 where repacked)
@@ -300,6 +298,14 @@ function interleave(sources, width = 4) {
     }
   }
   return outs;
+}
+
+// A test_frames.json entry ({position, rotation, projection}, both matrices 16 numbers column-major) as a camera
+// for draw(): rotation rows and the inverse projection.
+export function testFrameCamera(f) {
+  const m = f.rotation;
+  const rotation = [[m[0], m[4], m[8]], [m[1], m[5], m[9]], [m[2], m[6], m[10]]];
+  return {position: f.position.slice(), rotation, invProjection: invert4(f.projection)};
 }
 
 function smName(sm) { return `sm_${String(sm).padStart(3, '0')}`; }
