@@ -91,7 +91,6 @@ def main() -> None:
     ap.add_argument("--out", default="outputs/viewer_speed")
     args = ap.parse_args()
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
     if args.phone:
         args.query = "&".join(q for q in ("quality=phone", args.query) if q)
         report = {}

@@ -726,7 +726,7 @@ def cmd_view(args) -> int:
     scene = find_scene(args.scene)
     if args.walkthrough and not args.benchmark:
         raise ValueError("--walkthrough flies the viewer headless: give it with --benchmark")
-    if args.benchmark and args.walkthrough:
+    if args.walkthrough:
         from nerfbake.viewer.browser import read_walkthrough, run_walkthrough
 
         result = run_walkthrough(scene, read_walkthrough(args.walkthrough), software_gl=not args.gpu)
