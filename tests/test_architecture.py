@@ -4,6 +4,7 @@
   the CLI (the SMERF grid kernel takes the 8-bit round trip from ``render/quantize.py``);
 * render math knows no files, models or routes: ``render/`` imports only ``render/`` (and ``errors``);
 * the two routes stand apart: ``octree/`` never imports ``smerf/`` and the reverse;
+* the library knows no command line: only ``cli.py`` imports argparse;
 * routes read a teacher through its artifact (``teacher/run.py``), never through its trainer (``teacher/train.py``),
   and a SMERF student through ``smerf/run.py`` outside the trainer itself.
 """
@@ -65,3 +66,11 @@ def test_routes_read_teachers_and_students_through_their_artifacts():
                 if taken:
                     wrong.append(f"{path.relative_to(PACKAGE)} takes {sorted(taken)} from the trainer {node.module}")
     assert wrong == []
+
+
+def test_the_library_knows_no_command_line():
+    parsers = [str(p.relative_to(PACKAGE)) for p in sorted(PACKAGE.rglob("*.py"))
+               if any(isinstance(n, (ast.Import, ast.ImportFrom)) and "argparse" in
+                      ([a.name for a in n.names] if isinstance(n, ast.Import) else [n.module])
+                      for n in ast.walk(ast.parse(p.read_text())))]
+    assert parsers == ["cli.py"]

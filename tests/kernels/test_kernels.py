@@ -4,7 +4,7 @@ import torch
 
 from nerfbake.kernels.hashgrid import hash_encode, hash_encode_reference
 from nerfbake.kernels.march import march_rays
-from nerfbake.render.packed import packed_composite, packed_weights
+from nerfbake.render.packed import packed_composite, packed_median_depth, packed_weights
 from nerfbake.render.quadrature import composite, weights_from_density
 from tests.helpers import devices
 
@@ -100,6 +100,12 @@ def test_packed_compositing_equals_dense_quadrature():
     torch.testing.assert_close(pw.view(r, s), w, atol=1e-6, rtol=1e-5)
     for k in ("rgb", "acc", "depth"):
         torch.testing.assert_close(packed[k], dense[k], atol=1e-5, rtol=1e-5)
+    # the median depth: the first interval at which a ray's running weight reaches half its total
+    median = packed_median_depth(pw, t[:, :-1].reshape(-1), t[:, 1:].reshape(-1), ray_idx, r)
+    first = (torch.cumsum(w.double(), -1) >= 0.5 * w.double().sum(-1, keepdim=True)).double().argmax(-1)
+    torch.testing.assert_close(median, (0.5 * (t[:, :-1] + t[:, 1:])).gather(1, first[:, None])[:, 0])
+    no_weight = packed_median_depth(torch.zeros(3), torch.zeros(3), torch.ones(3), torch.tensor([0, 0, 2]), 3)
+    assert torch.isinf(no_weight).all()  # rays with no weight (1) or no samples have no depth
 
 
 @devices

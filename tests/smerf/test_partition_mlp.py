@@ -41,6 +41,23 @@ def test_partition_assigns_cameras_by_cell_and_inf_norm():
         assert p not in part.neighbours(p)
 
 
+def test_partition_cube_grows_until_a_share_of_the_surfaces_lies_in_the_core():
+    # a forward-facing capture: cameras within 0.4 of the origin, surfaces 1.3 to 6 in front of them
+    cams = np.random.default_rng(2).uniform([-0.4, -0.13, -0.05], [0.4, 0.13, 0.05], (20, 3))
+    surfaces = np.linspace(1.3, 6.0, 101)
+    by_cameras = Partition.from_cameras(cams, k=1)
+    assert by_cameras.submodel_scale * by_cameras.scale * 1.3 > 5  # every surface deep in the contracted shell
+    part = Partition.from_cameras(cams, k=1, surface_distances=surfaces, core_quantile=0.2)
+    in_core = part.submodel_scale * part.scale * surfaces <= 1 + 1e-9
+    assert in_core.mean() == pytest.approx(0.2, abs=0.011)
+    assert np.abs(part.normalize(cams)).max() < 0.95  # the cameras still lie in the cube
+    # an object scene, cameras all around at 4: its surfaces already lie in the core; the cameras size the cube
+    ring = np.stack([4 * np.cos(np.linspace(0, 6, 30)), 4 * np.sin(np.linspace(0, 6, 30)), np.ones(30)], 1)
+    assert Partition.from_cameras(ring, 1, surface_distances=np.full(50, 0.6)).scale == Partition.from_cameras(ring, 1).scale
+    # K > 1 is cut by the cameras alone
+    assert Partition.from_cameras(cams, 2, surface_distances=surfaces).scale == Partition.from_cameras(cams, 2).scale
+
+
 def test_boundary_cameras_are_the_ones_nearest_a_face_shared_with_an_alive_neighbour():
     rng = np.random.default_rng(1)
     # two rooms along x, every camera at one y and z: with K = 2 only the two cells split at x = 0 come alive

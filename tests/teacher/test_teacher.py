@@ -13,6 +13,7 @@ from nerfbake.fields.hash_sh import HashSHConfig
 from nerfbake.render.quadrature import composite, weights_from_density
 from nerfbake.render.sh import eval_sh_color
 from nerfbake.teacher.models import HashTeacherConfig
+from nerfbake.teacher.protocol import Teacher
 from nerfbake.teacher.run import config_from_dict, load_teacher
 from nerfbake.teacher.train import train_teacher
 from tests.helpers import one_and_two_processes, tiny_config
@@ -27,6 +28,7 @@ def params(run):
 def test_render_equals_rendering_core_on_the_teachers_intervals(tiny_scene, tmp_path, field):
     run = train_teacher(tiny_scene, tmp_path / "run", tiny_config(field, steps=4))
     model, *_ = load_teacher(run)
+    assert isinstance(model, Teacher)  # the interface the routes type against
     g = torch.Generator().manual_seed(0)
     origins = torch.tensor([[0.0, -4.0, 1.0]]).repeat(8, 1)
     dirs = torch.nn.functional.normalize(torch.tensor([0.0, 1.0, -0.25]) + 0.05 * torch.randn(8, 3, generator=g), dim=-1)
@@ -35,6 +37,7 @@ def test_render_equals_rendering_core_on_the_teachers_intervals(tiny_scene, tmp_
             culled = model.render_rays(origins, dirs, torch.ones(3))
             model.cfg.color_weight_thresh = -1.0
         out = model.render_rays(origins, dirs, torch.ones(3))
+    assert {"rgb", "acc", "depth", "ray_idx", "t0", "t1", "w"} <= set(out)
     if field == "hash":
         # Each sample whose colour is skipped weighs at most the threshold, and a colour is in [0, 1].
         bound = 1e-5 * torch.bincount(out["ray_idx"], minlength=8).float()

@@ -28,6 +28,7 @@ from nerfbake.octree.tree import Octree, tree_from_cells
 from nerfbake.progress import progress_bar
 from nerfbake.teacher.run import load_teacher
 from nerfbake.train.loop import DataParallel, step_generator
+from nerfbake.teacher.protocol import Teacher
 
 
 @dataclass
@@ -67,7 +68,7 @@ def build_preset(name: str) -> BuildConfig:
 
 
 @torch.no_grad()
-def query_density(teacher, points: torch.Tensor, chunk: int) -> torch.Tensor:
+def query_density(teacher: Teacher, points: torch.Tensor, chunk: int) -> torch.Tensor:
     """The teacher's density at ``points`` (N, 3) -> (N,) on the CPU, ``chunk`` points per query."""
     dev = next(teacher.parameters()).device
     out = torch.empty(points.shape[0])
@@ -83,7 +84,7 @@ def _cell_centres(lo: torch.Tensor, hi: torch.Tensor, g: int, z0: int, z1: int) 
     return (lo + xyz * (hi - lo)).float()
 
 
-def _teacher_occupied(teacher, pts: torch.Tensor) -> torch.Tensor:
+def _teacher_occupied(teacher: Teacher, pts: torch.Tensor) -> torch.Tensor:
     """Where the teacher's occupancy grid (dilated by one cell) says there may be density; all True without one."""
     grid = getattr(teacher, "grid", None)
     if grid is None:
@@ -98,7 +99,7 @@ def _teacher_occupied(teacher, pts: torch.Tensor) -> torch.Tensor:
     return inside & occ[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
 
 
-def density_grid(teacher, lo: torch.Tensor, hi: torch.Tensor, g: int, chunk: int, desc: str,
+def density_grid(teacher: Teacher, lo: torch.Tensor, hi: torch.Tensor, g: int, chunk: int, desc: str,
                  dp: DataParallel | None = None) -> torch.Tensor:
     """sigma at the cell centres of a g^3 grid over [lo, hi] (0 where the teacher's occupancy grid is empty); under
     torchrun each rank fills its share of the slabs."""
@@ -120,7 +121,7 @@ def density_grid(teacher, lo: torch.Tensor, hi: torch.Tensor, g: int, chunk: int
     return dp.combine(sigma)
 
 
-def autoscale_box(teacher, lo: torch.Tensor, hi: torch.Tensor, cameras, cfg: BuildConfig) -> tuple[torch.Tensor, torch.Tensor]:
+def autoscale_box(teacher: Teacher, lo: torch.Tensor, hi: torch.Tensor, cameras, cfg: BuildConfig) -> tuple[torch.Tensor, torch.Tensor]:
     """Tight box (one cell of margin) around the coarse cells that some training ray sees with weight >=
     autoscale_weight. The authors threshold alpha alone; counting only what the views see keeps a teacher's
     floaters in unseen corners from inflating the box."""
@@ -161,7 +162,7 @@ def weight_mask(sigma: torch.Tensor, lo, hi, cameras, cfg: BuildConfig, desc: st
 
 
 @torch.no_grad()
-def fill_leaves(tree: Octree, teacher, cfg: BuildConfig, cells: np.ndarray) -> None:
+def fill_leaves(tree: Octree, teacher: Teacher, cfg: BuildConfig, cells: np.ndarray) -> None:
     """Each kept leaf (``cells``: integer coordinates at the finest depth) gets the mean of the teacher's SH and
     density (ReLU'd) at ``samples_per_leaf`` uniform points inside it; a density-weighted SH mean was tried and was
     no better on lego. Pruned space (every other leaf) stays zero: the teacher's faint density there would

@@ -16,20 +16,21 @@ from nerfbake.data.cameras import Camera
 from nerfbake.progress import progress_bar
 from nerfbake.render.envmap import equirect_directions
 from nerfbake.teacher.sampling import ray_box
+from nerfbake.teacher.protocol import Teacher
 
 
-def needs_environment(teacher) -> bool:
+def needs_environment(teacher: Teacher) -> bool:
     """True for teachers that see past their box: unbounded (contracted) scenes and learned backgrounds."""
-    return bool(teacher.box.contracted) or getattr(teacher, "background", None) is not None
+    return bool(teacher.box.contracted) or teacher.background is not None
 
 
 @torch.no_grad()
-def bake_environment(teacher, box_min, box_max, cameras: list[Camera], height: int, background=(1.0, 1.0, 1.0),
+def bake_environment(teacher: Teacher, box_min, box_max, cameras: list[Camera], height: int, background=(1.0, 1.0, 1.0),
                      chunk: int = 1 << 14) -> torch.Tensor:
     """(height, 2 height, 3) colours in [0, 1] beyond the box [box_min, box_max] (world units)."""
     dev = next(teacher.parameters()).device
     dirs = equirect_directions(height, 2 * height).reshape(-1, 3)
-    if getattr(teacher, "background", None) is not None and not teacher.box.contracted:
+    if teacher.background is not None and not teacher.box.contracted:
         return torch.cat([teacher.background(dirs[s: s + chunk].to(dev)).float().cpu()
                           for s in range(0, dirs.shape[0], chunk)]).reshape(height, 2 * height, 3)
     centre = torch.from_numpy(np.mean([c.c2w[:3, 3] for c in cameras], axis=0)).float()

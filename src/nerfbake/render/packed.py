@@ -60,3 +60,14 @@ def packed_composite(w, rgb, t0, t1, ray_idx, num_rays, background=None) -> dict
         bg = torch.as_tensor(background, dtype=color.dtype, device=color.device)
         color = color + (1.0 - acc)[:, None] * bg
     return {"rgb": color, "acc": acc, "depth": depth}
+
+
+def packed_median_depth(w: torch.Tensor, t0: torch.Tensor, t1: torch.Tensor, ray_idx: torch.Tensor,
+                        num_rays: int) -> torch.Tensor:
+    """(R,) depth where each ray's accumulated weight first reaches half its total (the midpoint of that interval);
+    inf for rays with no weight. Unlike the expected depth it is not pulled off a surface by a far background."""
+    total = packed_sum(w, ray_idx, num_rays)
+    reached = packed_exclusive_cumsum(w, ray_idx) + w.double() >= 0.5 * total.double()[ray_idx]
+    mid = torch.where(reached & (w > 0), 0.5 * (t0 + t1), torch.full_like(t0, float("inf")))
+    out = torch.full((num_rays,), float("inf"), dtype=t0.dtype, device=t0.device)
+    return out.scatter_reduce(0, ray_idx, mid, reduce="amin")

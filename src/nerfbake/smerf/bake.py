@@ -33,6 +33,7 @@ from nerfbake.progress import console, progress_bar
 from nerfbake.smerf.deferred_mlp import deferred_mlp_text
 from nerfbake.render.quantize import RANGE_DENSITY, RANGE_FEATURES, to_bytes
 from nerfbake.smerf.validate import ATLAS_BLOCK, MAX_ATLAS_SIDE, OCCUPANCY_FACTORS
+from nerfbake.teacher.protocol import Teacher
 
 BLOCK = 8
 MAX_BLOCKS_PER_AXIS = MAX_ATLAS_SIDE // ATLAS_BLOCK  # 227, also below the 255 "empty" marker
@@ -44,7 +45,7 @@ class BakeError(NerfbakeError):
 
 # ---- geometry --------------------------------------------------------------------------------------------------
 @torch.no_grad()
-def alive_voxels(student, teacher, cameras, params_idx: int, threshold: float, background, stride: int = 2,
+def alive_voxels(student, teacher: Teacher, cameras, params_idx: int, threshold: float, background, stride: int = 2,
                  chunk: int = 1 << 13, progress=None) -> torch.Tensor:
     """(T, T, T) bool over contracted space (viewer axes): voxels next to a sample the submodel really shows."""
     from nerfbake.data.rays import camera_rays, pixel_grid

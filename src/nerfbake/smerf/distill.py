@@ -25,6 +25,7 @@ A student folder holds ``config.json`` (this config, the partition, the teacher 
 """
 from __future__ import annotations
 
+import json
 import math
 import time
 from pathlib import Path
@@ -36,18 +37,20 @@ from nerfbake.data.formats import load_dataset
 from nerfbake.data.pixels import PixelStore
 from nerfbake.eval.metrics import patch_dssim
 from nerfbake.progress import console, progress_bar
+from nerfbake.render.packed import packed_median_depth
 from nerfbake.smerf.partition import Partition, PartitionError
 from nerfbake.smerf.run import CHECKPOINT, CONFIG, DistillConfig
 from nerfbake.smerf.student import Student
 from nerfbake.train.loop import (RunLog, finish_run, run_complete, DataParallel, Interrupt, RateMeter, git_revision, load_checkpoint, log_linear_lr,
                                  save_checkpoint, step_generator, to_jsonable, write_json_atomic)
+from nerfbake.teacher.protocol import Teacher
 
 def charbonnier(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """The authors' per-ray "RMSE": mean of sqrt(1e-6 + d^2)."""
     return torch.sqrt(1e-6 + (a - b) ** 2).mean()
 
 
-def empty_space_loss(student: Student, teacher, num_points: int, gen: torch.Generator, quantize: bool) -> torch.Tensor:
+def empty_space_loss(student: Student, teacher: Teacher, num_points: int, gen: torch.Generator, quantize: bool) -> torch.Tensor:
     """Mean |alpha_student - alpha_teacher| at the viewer's step length, at random points of every submodel's
     contracted volume (half of them in the uncontracted core). The ray losses only ever see the teacher's
     intervals; without this the grids keep arbitrary density wherever the teacher never sampled, and the baked
@@ -118,6 +121,22 @@ def teacher_background(ds) -> tuple[float, float, float]:
     return tuple(ds.background or (1.0, 1.0, 1.0))
 
 
+@torch.no_grad()
+def surface_distances(teacher: Teacher, store: PixelStore, background, device, seed: int, num_rays: int = 4096) -> np.ndarray:
+    """Inf-norm distances from the world origin of the surfaces the training views see: the teacher's median depth
+    along ``num_rays`` random training rays, for the rays it makes at least half opaque (M,)."""
+    rays = store.sample_rays(num_rays, torch.Generator().manual_seed(seed))
+    o, d = rays["origins"].to(device), rays["directions"].to(device)
+    out = []
+    for a in range(0, num_rays, 1024):
+        oc, dc = o[a:a + 1024], d[a:a + 1024]
+        t = teacher.render_rays(oc, dc, torch.tensor(background, device=device).expand(oc.shape[0], 3))
+        depth = packed_median_depth(t["w"], t["t0"], t["t1"], t["ray_idx"], oc.shape[0])
+        keep = (t["acc"] >= 0.5) & torch.isfinite(depth)
+        out.append((oc[keep] + depth[keep, None] * dc[keep]).abs().amax(-1).cpu())
+    return torch.cat(out).double().numpy()
+
+
 def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume: bool = False,
             stop_at: int | None = None) -> Path:
     """Train a student from the teacher run ``teacher_run`` into ``out`` (see the module docstring); ``resume``
@@ -130,10 +149,17 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
     teacher.to(dp.device)
     ds = load_dataset(tmeta["data"], downscale=tcfg.downscale, normalize=tcfg.normalize)
     train_idx = ds.split("train")
-    origins = np.stack([ds.frames[i].camera.origin for i in train_idx])
-    partition = Partition.from_cameras(origins, cfg.k)
     if not resume and dp.is_main and run_complete(out):
         raise ValueError(f"{out}: already holds a finished student; pass --resume to continue or choose another --out")
+    with progress_bar("loading images", len(train_idx), unit="img") as adv:
+        store = PixelStore(ds, "train", progress=lambda k, n: adv())
+    bg = teacher_background(ds)
+    if resume and (out / CONFIG).is_file():  # the partition the checkpoint was trained in
+        partition = Partition.from_json(json.loads((out / CONFIG).read_text())["partition"])
+    else:
+        origins = np.stack([ds.frames[i].camera.origin for i in train_idx])
+        reach = surface_distances(teacher, store, bg, dp.device, cfg.seed) if cfg.k == 1 else None
+        partition = Partition.from_cameras(origins, cfg.k, surface_distances=reach, core_quantile=cfg.core_quantile)
     torch.manual_seed(cfg.seed)
     student = Student(cfg.student, partition, cfg.seed).to(dp.device)
     opt = torch.optim.Adam([{"params": [student.sparse, student.planes], "lr": cfg.lr_grid},
@@ -155,9 +181,6 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
     if dp.is_main:
         out.mkdir(parents=True, exist_ok=True)
         write_json_atomic(out / CONFIG, meta)
-    with progress_bar("loading images", len(train_idx), unit="img") as adv:
-        store = PixelStore(ds, "train", progress=lambda k, n: adv())
-    bg = teacher_background(ds)
     val_index = ds.split("val" if "val" in ds.splits else "test")[0]
 
     def state_dict(step):
@@ -254,7 +277,7 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
 
 
 @torch.no_grad()
-def render_student_camera(student: Student, teacher, camera, background, chunk: int = 1 << 13,
+def render_student_camera(student: Student, teacher: Teacher, camera, background, chunk: int = 1 << 13,
                           params_idx: int | None = None) -> np.ndarray:
     """(H, W, 3) image of the student on the teacher's (deterministic) intervals; the camera's submodel is chosen
     from its position (inf-norm rule) unless ``params_idx`` is given."""
@@ -275,7 +298,7 @@ def render_student_camera(student: Student, teacher, camera, background, chunk: 
     return torch.cat(out).reshape(camera.height, camera.width, 3).numpy()
 
 
-def validate(student, teacher, ds, index: int, out_dir: Path, step: int, background) -> float:
+def validate(student, teacher: Teacher, ds, index: int, out_dir: Path, step: int, background) -> float:
     """One held-out view next to its ground truth in ``out_dir``; returns PSNR (NaN when the view's camera lies
     outside the partition cube)."""
     from nerfbake.eval.views import validation_image

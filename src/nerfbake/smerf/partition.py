@@ -42,22 +42,33 @@ class Partition:
         return len(self.params_to_sm)
 
     @classmethod
-    def from_cameras(cls, origins: np.ndarray, k: int, margin: float = 0.05, scale_factor: float | None = None) -> "Partition":
+    def from_cameras(cls, origins: np.ndarray, k: int, margin: float = 0.05, scale_factor: float | None = None,
+                     surface_distances: np.ndarray | None = None, core_quantile: float = 0.1) -> "Partition":
         """Normalise camera origins (N, 3) into [-1 + margin, 1 - margin]^3 (uniform scale) and mark alive cells.
 
         With K = 1 the cube is centred on the world origin, which the dataset loaders put at the scene's centre
         of interest, so the object lands in the middle of the submodel's uncontracted core; with K > 1 it is
-        centred on the cameras' bounding box so that no cells are wasted."""
+        centred on the cameras' bounding box so that no cells are wasted.
+
+        ``surface_distances`` (M,): how far (inf-norm) from the world origin the training views' surfaces lie (at
+        the teacher's median depths; K = 1 only). The cube then grows, where needed, until at least ``core_quantile``
+        of them fall in the submodel's uncontracted core. Sized by its cameras alone, a forward-facing capture (fern: cameras
+        within 0.4 of the origin, the scene 1.3 to 6 in front) put every surface in the outer 7 % of the
+        contracted shell."""
         if k < 1:
             raise PartitionError(f"K must be >= 1, got {k}")
         origins = np.asarray(origins, np.float64)
         if origins.ndim != 2 or origins.shape[0] == 0:
             raise PartitionError("no training cameras to partition")
+        factor = scale_factor if scale_factor is not None else (2.5 if k == 1 else 0.8)
         lo, hi = origins.min(0), origins.max(0)
         centre = (lo + hi) / 2 if k > 1 else np.zeros(3)
         half = float(np.abs(origins - centre).max())
+        if k == 1 and surface_distances is not None and len(surface_distances):
+            reach = float(np.quantile(surface_distances, core_quantile))  # lands on the core's face (1)
+            half = max(half, factor * (1.0 - margin) * reach)
         scale = (1.0 - margin) / half if half > 0 else 1.0
-        part = cls(k, centre, scale, [-1] * k ** 3, scale_factor if scale_factor is not None else (2.5 if k == 1 else 0.8))
+        part = cls(k, centre, scale, [-1] * k ** 3, factor)
         alive = sorted(set(part.cell_index(part.normalize(origins)).tolist()))
         part.sm_to_params = [alive.index(i) if i in alive else -1 for i in range(k ** 3)]
         return part

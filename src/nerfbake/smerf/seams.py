@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 
 from nerfbake.smerf.partition import Partition
+from nerfbake.teacher.protocol import Teacher
 
 
 def boundary_cameras(partition: Partition, origins: np.ndarray, count: int) -> list[dict]:
@@ -32,7 +33,7 @@ def boundary_cameras(partition: Partition, origins: np.ndarray, count: int) -> l
     return sorted(pairs, key=lambda q: q["gap_cell_widths"])[:count]
 
 
-def compare_across_boundary(student, teacher, ds, split: str, pairs: list[dict], scene=None,
+def compare_across_boundary(student, teacher: Teacher, ds, split: str, pairs: list[dict], scene=None,
                             image_dir: Path | None = None) -> list[dict]:
     """PSNR between every two of teacher, home submodel, neighbour and ground truth for each of ``pairs`` (indices
     into ``split``), for the student on the teacher's intervals and, given baked ``scene`` assets, for the viewer's

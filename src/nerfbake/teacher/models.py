@@ -253,6 +253,7 @@ class NeRFSHTeacher(nn.Module):
     """Coarse and fine NeRF-SH MLPs; the fine pass evaluates coarse + importance samples (NeRF §5.2)."""
 
     kind = "nerf-sh"
+    background = None  # no learned background: rays that leave the box take the caller's colour
 
     def __init__(self, cfg: NeRFSHTeacherConfig, box: SceneBox):
         super().__init__()
