@@ -10,7 +10,7 @@ import sys
 from pathlib import Path
 
 from nerfbake import __version__
-from nerfbake.atomic import atomic_folder, check_output_file, check_output_folder
+from nerfbake.atomic import check_output_file
 from nerfbake.data.normalization import NORMALIZATIONS
 
 
@@ -40,17 +40,9 @@ def cmd_data_info(args) -> int:
 
 
 def cmd_metrics(args) -> int:
-    from nerfbake.data.images import load_image_uint8, to_float
-    from nerfbake.eval.metrics import image_metrics
+    from nerfbake.eval.metrics import compare_image_files
 
-    imgs = []
-    for p in (args.image_a, args.image_b):
-        arr = to_float(load_image_uint8(Path(p), disk_cache=False), background=(1.0, 1.0, 1.0))
-        imgs.append(arr)
-    if imgs[0].shape != imgs[1].shape:
-        raise ValueError(f"{args.image_b}: size {imgs[1].shape[1]}x{imgs[1].shape[0]} differs from "
-                         f"{args.image_a}'s {imgs[0].shape[1]}x{imgs[0].shape[0]}; compare images of the same size")
-    result = image_metrics(imgs[1], imgs[0])
+    result = compare_image_files(args.image_a, args.image_b)
     if args.json:
         _print_json(result)
     else:
@@ -95,26 +87,20 @@ def cmd_process(args) -> int:
 def cmd_demo(args) -> int:
     """Built-in scene -> the whole pipeline with shortened CPU settings -> report and the commands to view each result."""
     from nerfbake.data.formats import load_dataset
-    from nerfbake.data.synth import SynthConfig, render_dataset
-    from nerfbake.pipeline import demo_config, run_pipeline
-    from nerfbake.progress import progress_bar
+    from nerfbake.pipeline import run_demo
 
     out = Path(args.out)
-    scene_dir = out / "scene"
-    cfg = SynthConfig(scene="objects", width=args.width, height=args.width, views=args.views, spp=args.spp, seed=0)
-    if not (scene_dir / "transforms_train.json").is_file():
-        held = cfg.held_out_views
-        with progress_bar("demo: synthesize scene", cfg.views + 2 * held, unit="views") as advance:
-            render_dataset(cfg, scene_dir, progress=lambda d, t: advance())
-    pcfg = demo_config(str(out), str(scene_dir), eval_views=args.eval_views)
-    pcfg.methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
-    for name in ("teacher_steps", "octree_grid", "distill_steps", "student_sparse", "student_triplane"):
-        if getattr(args, name):
-            setattr(pcfg, name, getattr(args, name))
-    results = run_pipeline(pcfg, log=lambda line: print(line, file=sys.stderr, flush=True))
+    results = run_demo(out, args.width, args.views, args.spp, args.eval_views, _methods(args.methods),
+                       log=lambda line: print(line, file=sys.stderr, flush=True),
+                       **{n: getattr(args, n) for n in ("teacher_steps", "octree_grid", "distill_steps", "student_sparse",
+                                                        "student_triplane")})
     _print_summary(out, results)
-    _print_json({"scene": load_dataset(scene_dir).info(), "methods": results["methods"], "report": str(out / "report.md")})
+    _print_json({"scene": load_dataset(out / "scene").info(), "methods": results["methods"], "report": str(out / "report.md")})
     return 0
+
+
+def _methods(text: str) -> tuple[str, ...]:
+    return tuple(m.strip() for m in text.split(",") if m.strip())
 
 
 def _print_summary(run: Path, results: dict) -> None:
@@ -137,24 +123,16 @@ def _print_summary(run: Path, results: dict) -> None:
 
 def cmd_pipeline(args) -> int:
     from nerfbake.pipeline import PipelineConfig, run_pipeline
+    from nerfbake.smerf.run import config_from_file as distill_config
+    from nerfbake.teacher.run import config_from_file as teacher_config
 
-    methods = tuple(m.strip() for m in args.methods.split(",") if m.strip())
-    teacher = distill = None
-    if args.teacher_config:
-        from nerfbake.teacher.run import config_from_dict as teacher_from_dict
-
-        d = json.loads(Path(args.teacher_config).read_text())
-        teacher = teacher_from_dict(d.get("train", d))
-    if args.distill_config:
-        from nerfbake.smerf.run import config_from_dict as distill_from_dict
-
-        d = json.loads(Path(args.distill_config).read_text())
-        distill = distill_from_dict(d.get("distill", d))
-    cfg = PipelineConfig(data=args.data, out=args.out, preset=args.preset, methods=methods, k=args.k,
+    cfg = PipelineConfig(data=args.data, out=args.out, preset=args.preset, methods=_methods(args.methods), k=args.k,
                          eval_views=args.eval_views or None, teacher_steps=args.teacher_steps,
                          distill_steps=args.distill_steps, octree_grid=args.octree_grid, octree_epochs=args.octree_epochs,
-                         octree_lr=args.octree_lr, bake_stride=args.bake_stride, teacher=teacher, distill=distill,
-                         downscale=args.downscale, normalize=args.normalize)
+                         octree_lr=args.octree_lr, bake_stride=args.bake_stride, downscale=args.downscale,
+                         normalize=args.normalize,
+                         teacher=teacher_config(args.teacher_config) if args.teacher_config else None,
+                         distill=distill_config(args.distill_config) if args.distill_config else None)
     results = run_pipeline(cfg, stop_after=args.stop_after, log=lambda line: print(line, file=sys.stderr, flush=True))
     if results:
         _print_summary(Path(args.out), results)
@@ -171,18 +149,13 @@ def cmd_report(args) -> int:
 
 def cmd_teacher_train(args) -> int:
     from nerfbake.teacher.presets import preset
-    from nerfbake.teacher.run import config_from_dict
+    from nerfbake.teacher.run import config_from_file
     from nerfbake.teacher.train import train_teacher
 
-    if args.config:
-        d = json.loads(Path(args.config).read_text())
-        cfg = config_from_dict(d.get("train", d))  # a run's config.json or a bare training config
-    else:
-        cfg = preset(args.field, args.preset)
+    cfg = config_from_file(args.config) if args.config else preset(args.field, args.preset)
     cfg = _override(cfg, args, ("steps", "batch_rays", "downscale", "appearance", "normalize"))
     cfg.seed = args.seed
-    if args.tensorboard:
-        cfg.tensorboard = True
+    cfg.tensorboard = cfg.tensorboard or args.tensorboard
     train_teacher(args.data, args.out, cfg, resume=args.resume)
     return 0
 
@@ -212,18 +185,7 @@ def cmd_teacher_render(args) -> int:
 def _octree_opts(args):
     from nerfbake.octree.render import RenderOptions
 
-    opts = RenderOptions()
-    if getattr(args, "step_size", None) is not None:
-        opts.step_size = args.step_size
-    if getattr(args, "sh_range", None):
-        lo, hi = (int(v) for v in args.sh_range.split(","))
-        opts.basis_min, opts.basis_max = lo, hi
-    if getattr(args, "slice", None):
-        v = [float(x) for x in args.slice.split(",")]
-        if len(v) != 6:
-            raise ValueError("--slice takes 6 numbers: xmin,ymin,zmin,xmax,ymax,zmax in tree coordinates [0, 1]")
-        opts.bbox_min, opts.bbox_max = tuple(v[:3]), tuple(v[3:])
-    return opts
+    return RenderOptions.from_text(args.step_size, getattr(args, "sh_range", None), getattr(args, "slice", None))
 
 
 def _override(cfg, args, names: tuple[str, ...]):
@@ -300,20 +262,9 @@ def cmd_octree_eval(args) -> int:
 
 
 def cmd_octree_info(args) -> int:
-    from nerfbake.octree.io import compression_record, load_tree, volrend_problems
+    from nerfbake.octree.io import tree_info
 
-    tree = load_tree(args.tree)
-    lo, hi = tree.world_bounds
-    leaves = tree.leaves()
-    info = {
-        "tree": str(args.tree), "data_format": tree.data_format, "data_dim": tree.data_dim, "sh_degree": tree.sh_degree,
-        "num_nodes": tree.num_nodes, "num_leaves": tree.num_leaves, "depth_limit": tree.depth_limit,
-        "leaves_per_depth": {int(d): int((leaves["depth"] == d).sum()) for d in leaves["depth"].unique()},
-        "nonzero_sigma_leaves": int((tree.data.reshape(-1, tree.data_dim)[leaves["index"], -1] > 0).sum()),
-        "box_min": lo.tolist(), "box_max": hi.tolist(), "file_bytes": Path(args.tree).stat().st_size,
-        "env_map": None if tree.env_map is None else list(tree.env_map.shape[:2]),
-        "volrend_problems": volrend_problems(args.tree), "compression": compression_record(args.tree),
-    }
+    info = tree_info(args.tree)
     if args.json:
         _print_json(info)
     else:
@@ -323,29 +274,10 @@ def cmd_octree_info(args) -> int:
 
 
 def cmd_octree_render(args) -> int:
-    import imageio.v3 as iio
-    import numpy as np
+    from nerfbake.octree.render import render_pose_file
 
-    from nerfbake.eval.views import to_png
-    from nerfbake.octree.io import load_tree
-    from nerfbake.octree.render import render_camera
-    from nerfbake.progress import progress_bar
-    from nerfbake.teacher.evaluate import read_pose_file
-    from nerfbake.train.loop import default_device
-
-    out = Path(args.out)
-    check_output_folder(out, args.overwrite, "render")
-    tree = load_tree(args.tree, default_device())
-    cams = read_pose_file(Path(args.pose_file))
-    opts = _octree_opts(args)
-    with atomic_folder(out, args.overwrite, "render") as tmp, progress_bar("octree render", len(cams), unit="view") as advance:
-        for i, cam in enumerate(cams):
-            img = render_camera(tree, cam, opts)
-            iio.imwrite(tmp / f"{i:04d}.png", to_png(img["rgb"]))
-            if args.depth:
-                np.save(tmp / f"{i:04d}_depth.npy", img["depth"].astype(np.float32))
-            advance()
-    print(f"wrote {len(cams)} images to {out}")
+    written = render_pose_file(args.tree, args.pose_file, args.out, _octree_opts(args), args.overwrite, args.depth)
+    print(f"wrote {len(written)} images to {args.out}")
     return 0
 
 
@@ -365,16 +297,11 @@ def cmd_smerf_info(args) -> int:
 
 def cmd_distill(args) -> int:
     from nerfbake.smerf.distill import distill
-    from nerfbake.smerf.run import config_from_dict, distill_preset
+    from nerfbake.smerf.run import config_from_file, distill_preset
 
-    if args.config:
-        d = json.loads(Path(args.config).read_text())
-        cfg = config_from_dict(d.get("distill", d))
-    else:
-        cfg = distill_preset(args.preset, args.k or 1)
+    cfg = config_from_file(args.config) if args.config else distill_preset(args.preset, args.k or 1)
     cfg = _override(cfg, args, ("k", "steps", "batch_patches"))
-    if args.tensorboard:
-        cfg.tensorboard = True
+    cfg.tensorboard = cfg.tensorboard or args.tensorboard
     distill(args.teacher, args.out, cfg, resume=args.resume)
     return 0
 
@@ -407,23 +334,11 @@ def cmd_smerf_eval(args) -> int:
 
 
 def cmd_smerf_render(args) -> int:
-    import imageio.v3 as iio
+    from nerfbake.smerf.baked_render import render_frames_to_folder
 
-    from nerfbake.eval.views import to_png
-    from nerfbake.progress import progress_bar
-    from nerfbake.smerf.assets import SceneAssets
-    from nerfbake.smerf.baked_render import read_test_frames, render_baked
-
-    out = Path(args.out)
-    check_output_folder(out, args.overwrite, "render")
-    scene = SceneAssets.open(args.assets)
-    frames = args.frames or str(scene.root / f"sm_{scene.params['params_to_sm'][0]:03d}" / "test_frames.json")
-    cams = read_test_frames(frames, args.width, args.height)
-    with atomic_folder(out, args.overwrite, "render") as tmp, progress_bar("smerf render", len(cams), unit="view") as advance:
-        for i, cam in enumerate(cams):
-            iio.imwrite(tmp / f"{i:04d}.png", to_png(render_baked(scene, cam, step_mult=args.step_mult)))
-            advance()
-    print(f"wrote {len(cams)} images to {out}")
+    written = render_frames_to_folder(args.assets, args.out, args.frames, args.width, args.height, args.step_mult,
+                                      args.overwrite)
+    print(f"wrote {len(written)} images to {args.out}")
     return 0
 
 

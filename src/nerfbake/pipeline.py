@@ -23,7 +23,9 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable
 
+from nerfbake.data.synth import SynthConfig, render_dataset
 from nerfbake.errors import NerfbakeError
+from nerfbake.progress import progress_bar
 from nerfbake.train.loop import RUN_CONFIG, DataParallel, run_complete, write_json_atomic
 
 METHODS = ("octree", "smerf")
@@ -431,3 +433,18 @@ def demo_config(out: str, data: str, eval_views: int = 6) -> PipelineConfig:
                           octree_grid=128, octree_epochs=2, octree_lr=1e5, distill_steps=600, student_sparse=64,
                           student_triplane=256, bake_stride=2)
 
+
+
+def run_demo(out: str | Path, width: int = 160, views: int = 48, spp: int = 32, eval_views: int = 6,
+             methods: tuple[str, ...] = METHODS, log=print, **overrides) -> dict:
+    """``nerfbake demo``: the built-in synthetic scene (rendered once into ``out/scene``), then the whole pipeline with
+    :func:`demo_config`'s shortened settings (``overrides``: its step and size fields, None keeps them)."""
+    out = Path(out)
+    scene_dir = out / "scene"
+    scene = SynthConfig(scene="objects", width=width, height=width, views=views, spp=spp, seed=0)
+    if not (scene_dir / "transforms_train.json").is_file():
+        with progress_bar("demo: synthesize scene", scene.views + 2 * scene.held_out_views, unit="views") as advance:
+            render_dataset(scene, scene_dir, progress=lambda d, t: advance())
+    cfg = replace(demo_config(str(out), str(scene_dir), eval_views=eval_views), methods=tuple(methods),
+                  **{k: v for k, v in overrides.items() if v is not None})
+    return run_pipeline(cfg, log=log)

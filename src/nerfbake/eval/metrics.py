@@ -6,9 +6,13 @@ convolution, k1 = 0.01, k2 = 0.03, averaged over pixels and channels. DSSIM = (1
 """
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import torch
 import torch.nn.functional as F
+
+from nerfbake.data.images import load_image_uint8, to_float
 
 
 def _as_batch(img) -> torch.Tensor:
@@ -92,3 +96,12 @@ def image_metrics(pred, gt, lpips_nets: tuple[str, ...] = ("alex", "vgg")) -> di
     for net in lpips_nets:
         out[f"lpips_{net}"] = float(lpips(pred, gt, net)[0])
     return out
+
+
+def compare_image_files(reference, scored) -> dict[str, float]:
+    """``nerfbake metrics A B``: :func:`image_metrics` of image ``scored`` against ``reference`` (RGBA on white)."""
+    a, b = (to_float(load_image_uint8(Path(p), disk_cache=False), background=(1.0, 1.0, 1.0)) for p in (reference, scored))
+    if a.shape != b.shape:
+        raise ValueError(f"{scored}: size {b.shape[1]}x{b.shape[0]} differs from {reference}'s {a.shape[1]}x{a.shape[0]}; "
+                         "compare images of the same size")
+    return image_metrics(b, a)

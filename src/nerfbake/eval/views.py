@@ -12,7 +12,7 @@ from typing import Callable
 
 import numpy as np
 
-from nerfbake.atomic import write_image
+from nerfbake.atomic import atomic_folder, check_output_folder, write_image
 from nerfbake.data.dataset import Dataset
 from nerfbake.eval.metrics import image_metrics
 from nerfbake.progress import progress_bar
@@ -22,6 +22,27 @@ def pick_views(indices: list[int], max_views: int | None) -> list[int]:
     if not max_views:
         return list(indices)
     return [indices[int(i)] for i in np.linspace(0, len(indices) - 1, min(max_views, len(indices)))]
+
+
+def render_views_to_folder(render: Callable, cameras: list, out: str | Path, overwrite: bool = False,
+                           desc: str = "render", extra_files: dict[str, str] | None = None) -> list[Path]:
+    """``NNNN.png`` per camera in ``out``, which appears only once every view is written. ``render(camera)`` returns
+    an (H, W, 3) image in [0, 1], or a dict with ``rgb`` and optionally ``depth`` (H, W; saved as
+    ``NNNN_depth.npy``); ``extra_files`` are written beside them (name -> text)."""
+    out = Path(out)
+    check_output_folder(out, overwrite, "render")
+    names = [f"{i:04d}.png" for i in range(len(cameras))]
+    with atomic_folder(out, overwrite, "render") as tmp, progress_bar(desc, len(cameras), unit="view") as advance:
+        for name, cam in zip(names, cameras):
+            img = render(cam)
+            img = img if isinstance(img, dict) else {"rgb": img}
+            write_image(tmp / name, to_png(img["rgb"]))
+            if img.get("depth") is not None:
+                np.save(tmp / name.replace(".png", "_depth.npy"), np.asarray(img["depth"], np.float32))
+            advance()
+        for fname, text in (extra_files or {}).items():
+            (tmp / fname).write_text(text)
+    return [out / n for n in names]
 
 
 def lpips_net_for(ds: Dataset) -> str:

@@ -15,7 +15,6 @@ from __future__ import annotations
 
 import ast
 import json
-import os
 import struct
 import zipfile
 from pathlib import Path
@@ -299,3 +298,19 @@ def volrend_problems(path: str | Path) -> list[str]:
     elif arrays.get("data", ("", ()))[0] != "<f2":
         problems.append("data must be stored in half precision (float16)")
     return problems
+
+
+def tree_info(path: str | Path) -> dict:
+    """What ``nerfbake octree info`` prints: sizes, leaves per depth, bounds, and volrend's loader rules checked."""
+    tree = load_tree(path)
+    lo, hi = tree.world_bounds
+    leaves = tree.leaves()
+    return {
+        "tree": str(path), "data_format": tree.data_format, "data_dim": tree.data_dim, "sh_degree": tree.sh_degree,
+        "num_nodes": tree.num_nodes, "num_leaves": tree.num_leaves, "depth_limit": tree.depth_limit,
+        "leaves_per_depth": {int(d): int((leaves["depth"] == d).sum()) for d in leaves["depth"].unique()},
+        "nonzero_sigma_leaves": int((tree.data.reshape(-1, tree.data_dim)[leaves["index"], -1] > 0).sum()),
+        "box_min": lo.tolist(), "box_max": hi.tolist(), "file_bytes": Path(path).stat().st_size,
+        "env_map": None if tree.env_map is None else list(tree.env_map.shape[:2]),
+        "volrend_problems": volrend_problems(path), "compression": compression_record(path),
+    }

@@ -8,12 +8,17 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from nerfbake.atomic import check_output_folder
 from nerfbake.data.cameras import Camera
+from nerfbake.data.formats.pose_file import read_pose_file
 from nerfbake.data.rays import camera_rays
+from nerfbake.eval.views import render_views_to_folder
+from nerfbake.octree.io import load_tree
 from nerfbake.octree.tree import Octree
 from nerfbake.render.packed import packed_composite, packed_weights
 from nerfbake.render.envmap import sample_equirect
 from nerfbake.render.sh import sh_basis
+from nerfbake.train.loop import default_device
 
 
 @dataclass
@@ -28,6 +33,23 @@ class RenderOptions:
     bbox_max: tuple[float, float, float] = (1.0, 1.0, 1.0)
     basis_min: int = 0  # SH component range [basis_min, basis_max); None = all the tree holds
     basis_max: int | None = None
+
+    @classmethod
+    def from_text(cls, step_size: float | None = None, sh_range: str | None = None, slice_box: str | None = None,
+                  **kw) -> "RenderOptions":
+        """Options as the command line gives them: ``sh_range`` "lo,hi" (half-open), ``slice_box`` six numbers
+        "xmin,ymin,zmin,xmax,ymax,zmax" in tree coordinates [0, 1]."""
+        opts = cls(**kw)
+        if step_size is not None:
+            opts.step_size = step_size
+        if sh_range:
+            opts.basis_min, opts.basis_max = (int(v) for v in sh_range.split(","))
+        if slice_box:
+            v = [float(x) for x in slice_box.split(",")]
+            if len(v) != 6:
+                raise ValueError("--slice takes 6 numbers: xmin,ymin,zmin,xmax,ymax,zmax in tree coordinates [0, 1]")
+            opts.bbox_min, opts.bbox_max = tuple(v[:3]), tuple(v[3:])
+        return opts
 
     @classmethod
     def training(cls, **kw) -> "RenderOptions":
@@ -143,3 +165,16 @@ def render_reference(tree: Octree, origins: torch.Tensor, dirs: torch.Tensor, op
     rgb = torch.where(stopped, rgb / (1.0 - T[:, None]).clamp_min(1e-12), rgb + T[:, None] * bg)
     alpha = torch.where(s["stopped"], torch.ones_like(acc), acc)
     return {"rgb": rgb, "depth": depth, "alpha": alpha}
+
+
+def render_pose_file(tree_path, pose_file, out, opts: RenderOptions, overwrite: bool = False, depth: bool = False) -> list:
+    """``nerfbake octree render``: one PNG per pose of a transforms-style JSON (and ``NNNN_depth.npy`` with
+    ``depth``) in ``out``, which appears only once every view is written."""
+    check_output_folder(out, overwrite, "render")
+    tree = load_tree(tree_path, default_device())
+
+    def render(cam):
+        img = render_camera(tree, cam, opts)
+        return {"rgb": img["rgb"], "depth": img["depth"] if depth else None}
+
+    return render_views_to_folder(render, read_pose_file(pose_file), out, overwrite, desc="octree render")

@@ -11,6 +11,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from nerfbake.atomic import check_output_folder
+from nerfbake.eval.views import render_views_to_folder
 from nerfbake.smerf.assets import VIEWER_FROM_TRAIN, AssetError, SceneAssets
 from nerfbake.smerf.deferred_mlp import deferred_inputs
 
@@ -148,3 +150,15 @@ def render_baked(scene: SceneAssets, cam: ViewerCamera, step_mult: int = 1, visi
     weights = deferred_mlp_weights(scene.mlp, sm.params, si, cam.position)
     rgb = deferred_shade(acc, dirs, weights, sm.params, background)
     return rgb.clamp(0, 1).reshape(cam.height, cam.width, 3).numpy()
+
+
+def render_frames_to_folder(assets, out, frames=None, width: int = 800, height: int = 500, step_mult: int = 1,
+                            overwrite: bool = False) -> list[Path]:
+    """``nerfbake smerf render``: one PNG per camera of a ``test_frames.json`` (default: the first submodel's) in
+    ``out``, drawn as the official viewer's shader draws them; ``out`` appears only once every view is written."""
+    check_output_folder(out, overwrite, "render")
+    scene = SceneAssets.open(assets)
+    frames = frames or scene.root / f"sm_{scene.params['params_to_sm'][0]:03d}" / "test_frames.json"
+    cams = read_test_frames(frames, width, height)
+    return render_views_to_folder(lambda cam: render_baked(scene, cam, step_mult=step_mult), cams, out, overwrite,
+                                  desc="smerf render")

@@ -5,6 +5,7 @@ through the trainer (``smerf/distill.py``).
 from __future__ import annotations
 
 from dataclasses import dataclass, field as dc_field
+import json
 from pathlib import Path
 
 from nerfbake.errors import RunFolderError, read_folder_config, reading
@@ -88,6 +89,13 @@ def config_from_dict(d: dict) -> DistillConfig:
     for key in ("geometry_mult", "cull_alpha", "cull_window"):
         d[key] = tuple(d[key])
     return DistillConfig(**d, student=student)
+
+
+def config_from_file(path: str | Path):
+    """The distillation config in a JSON file: a run's ``config.json`` (its ``"distill"`` entry) or a bare config."""
+    with reading(path, RunFolderError, "pass a run's config.json or a distillation config written as JSON"):
+        d = json.loads(Path(path).read_text())
+        return config_from_dict(d.get("distill", d))
 
 
 def load_student(path: str | Path) -> tuple[Student, DistillConfig, dict]:

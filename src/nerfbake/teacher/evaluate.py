@@ -4,16 +4,15 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-import imageio.v3 as iio
 import numpy as np
 import torch
 
-from nerfbake.atomic import atomic_folder, check_output_folder
+from nerfbake.atomic import check_output_folder
 from nerfbake.data.cameras import Camera
 from nerfbake.data.formats import load_dataset
 from nerfbake.data.rays import CameraBatch, pixel_grid
-from nerfbake.eval.views import evaluate_views, to_png
-from nerfbake.progress import progress_bar
+from nerfbake.data.formats.pose_file import read_pose_file
+from nerfbake.eval.views import evaluate_views, render_views_to_folder
 from nerfbake.teacher.run import load_teacher
 from nerfbake.train.loop import git_revision, write_json_atomic
 
@@ -51,49 +50,11 @@ def evaluate_teacher(run: Path, split: str = "test", max_views: int | None = Non
     return result
 
 
-def read_pose_file(path: Path) -> list[Camera]:
-    """Cameras from a transforms-style JSON: ``camera_angle_x`` or ``fl_x``/``fl_y``, ``w``/``h`` (or
-    ``width``/``height``), optional ``cx``/``cy``, and ``frames`` with OpenGL ``transform_matrix`` (or ``poses``)."""
-    from nerfbake.data.errors import DatasetError
-    from nerfbake.data.formats.jsonio import read_json
-
-    path = Path(path)
-    meta = read_json(path)
-    w = meta.get("w", meta.get("width"))
-    h = meta.get("h", meta.get("height"))
-    if w is None or h is None:
-        raise DatasetError(f"{path}: give the image size as w and h")
-    w, h = int(w), int(h)
-    if "fl_x" in meta:
-        fx = float(meta["fl_x"])
-        fy = float(meta.get("fl_y", fx))
-    elif "camera_angle_x" in meta:
-        fx = fy = 0.5 * w / np.tan(0.5 * float(meta["camera_angle_x"]))
-    else:
-        raise DatasetError(f"{path}: give a focal length as fl_x or camera_angle_x")
-    poses = meta.get("poses") or [f.get("transform_matrix") for f in meta.get("frames", [])]
-    if not poses:
-        raise DatasetError(f"{path}: no poses (a 'frames' list with transform_matrix, or 'poses')")
-    cams = []
-    for i, p in enumerate(poses):
-        m = np.asarray(p, dtype=np.float64)
-        if m.shape not in ((4, 4), (3, 4)) or not np.isfinite(m).all():
-            raise DatasetError(f"{path}: pose {i} must be a finite 4x4 camera-to-world matrix")
-        cams.append(Camera(m, w, h, fx, fy, float(meta.get("cx", w / 2)), float(meta.get("cy", h / 2))))
-    return cams
-
-
 def render_poses(run: Path, pose_file: Path, out: Path, overwrite: bool = False) -> list[Path]:
     """One PNG per pose in ``out`` (which appears only once every view is rendered)."""
-    out = Path(out)
     check_output_folder(out, overwrite, "render")
     model, cfg, meta, _ = load_teacher(run)
     cams = read_pose_file(pose_file)
     bg = tuple(meta["dataset"]["background"] or (1.0, 1.0, 1.0))
-    names = [f"{i:04d}.png" for i in range(len(cams))]
-    with atomic_folder(out, overwrite, "render") as tmp, progress_bar("render", len(cams), unit="view") as advance:
-        for name, cam in zip(names, cams):
-            iio.imwrite(tmp / name, to_png(render_camera(model, cam, bg)["rgb"]))
-            advance()
-        (tmp / "poses.json").write_text(json.dumps({"source": str(pose_file), "count": len(cams)}))
-    return [out / n for n in names]
+    return render_views_to_folder(lambda cam: render_camera(model, cam, bg)["rgb"], cams, out, overwrite,
+                                  extra_files={"poses.json": json.dumps({"source": str(pose_file), "count": len(cams)})})

@@ -5,6 +5,7 @@ trainer (``teacher/train.py``), so reading a run does not pull in training code.
 """
 from __future__ import annotations
 
+import json
 from pathlib import Path
 
 from nerfbake.errors import RunFolderError, read_folder_config, reading
@@ -31,6 +32,13 @@ def config_from_dict(d: dict) -> TeacherTrainConfig:
     hash_cfg = HashTeacherConfig(field=HashSHConfig(**h.pop("field")), proposal=prop, **h)
     nerf_cfg = NeRFSHTeacherConfig(field=NeRFSHConfig(**n.pop("field")), **n)
     return TeacherTrainConfig(hash=hash_cfg, nerf_sh=nerf_cfg, **d)
+
+
+def config_from_file(path: str | Path):
+    """The teacher training config in a JSON file: a run's ``config.json`` (its ``"train"`` entry) or a bare config."""
+    with reading(path, RunFolderError, "pass a run's config.json or a teacher training config written as JSON"):
+        d = json.loads(Path(path).read_text())
+        return config_from_dict(d.get("train", d))
 
 
 def load_teacher(run: Path):
