@@ -41,9 +41,9 @@ from nerfbake.render.packed import packed_median_depth
 from nerfbake.smerf.partition import Partition, PartitionError
 from nerfbake.smerf.run import CHECKPOINT, CONFIG, DistillConfig
 from nerfbake.smerf.student import Student
-from nerfbake.train.loop import (RunLog, finish_run, run_complete, DataParallel, Interrupt, RateMeter, git_revision, load_checkpoint, log_linear_lr,
-                                 save_checkpoint, step_generator, to_jsonable, write_json_atomic)
 from nerfbake.teacher.protocol import Teacher
+from nerfbake.train.loop import (DataParallel, finish_run, git_revision, load_checkpoint, log_linear_lr, run_complete,
+                                 run_steps, to_jsonable, write_json_atomic)
 
 def charbonnier(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """The authors' per-ray "RMSE": mean of sqrt(1e-6 + d^2)."""
@@ -186,91 +186,74 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
     def state_dict(step):
         return {"model": student.state_dict(), "optimizer": opt.state_dict(), "step": step, "kind": "smerf-student"}
 
-    rate = RateMeter()
-    step = start
     n_rays = cfg.batch_patches * 9
     t_start = time.time()
-    with Interrupt() as interrupt, progress_bar(f"distill K={cfg.k}", cfg.steps, unit="step") as advance:
-        advance(start)
-        runlog = RunLog(out, dp.is_main, cfg.tensorboard, start_step=start)
-        try:
-            while step < cfg.steps:
-                if interrupt.requested or (stop_at is not None and step >= stop_at):
-                    break
-                gen = step_generator(cfg.seed, step)
-                lr_g = log_linear_lr(step, cfg.steps, cfg.lr_grid, cfg.lr_grid_final, cfg.warmup_steps)
-                lr_m = log_linear_lr(step, cfg.steps, cfg.lr_mlp, cfg.lr_mlp_final, cfg.warmup_steps)
-                opt.param_groups[0]["lr"], opt.param_groups[1]["lr"] = lr_g, lr_m
-                drawn = store.sample_rays(n_rays, gen, patch=3)
-                rays = jitter_patches(drawn, cfg, partition, gen)
-                home = partition.assign(rays["origins"].double().numpy())
-                params_idx = reassign(home, partition, cfg.reassign_fraction, gen)
-                noise = torch.rand(n_rays, teacher.noise_dims, generator=gen)
-                neighbour = random_neighbour(params_idx, partition, gen) if partition.num_alive > 1 else None
-                mine = dp.shard(cfg.batch_patches)
-                sl = slice(mine.start * 9, mine.stop * 9)
-                o, d = rays["origins"][sl].to(dp.device), rays["directions"][sl].to(dp.device)
-                cams = drawn["origins"][sl].to(dp.device)  # un-jittered camera centres: where the MLP lattice is read
-                with torch.no_grad():
-                    tout = teacher.render_rays(o, d, torch.tensor(bg, device=dp.device).expand(o.shape[0], 3),
-                                               noise=noise[sl].to(dp.device))
-                pidx = torch.as_tensor(params_idx[sl], device=dp.device)
-                s_out = student.render(o, d, pidx, tout["t0"], tout["t1"], tout["ray_idx"], cfg.cull_threshold(step),
-                                       cfg.quantize, cams)
-                share = (sl.stop - sl.start) / n_rays  # this rank's share of the global mean
-                target = tout["rgb"]
-                ssim_l = patch_dssim(s_out["rgb"].view(-1, 3, 3, 3), target.view(-1, 3, 3, 3))
-                if step < cfg.mse_warmup * cfg.steps:
-                    rgb_l = 10.0 * ((s_out["rgb"] - target) ** 2).mean()
-                    ssim_l = ssim_l * 0
-                else:
-                    rgb_l = charbonnier(s_out["rgb"], target)
-                geo_l = (s_out["w"] - tout["w"]).abs().sum() / o.shape[0]
-                opacity_l = (s_out["acc"] - tout["acc"]).abs().mean()
-                loss = share * (cfg.rgb_mult * rgb_l + cfg.dssim_mult * ssim_l + cfg.geometry_weight(step) * geo_l
-                                + cfg.opacity_mult * opacity_l)
-                loss = loss + cfg.mlp_tv_mult * student.mlp.tv_loss() / dp.world
-                if cfg.empty_space_mult > 0:
-                    empty_l = empty_space_loss(student, teacher, cfg.empty_space_points, gen, cfg.quantize)
-                    loss = loss + cfg.empty_space_mult * empty_l / dp.world
-                terms = {"rgb": float(rgb_l.detach()), "dssim": float(ssim_l.detach()), "geometry": float(geo_l.detach()),
-                         "opacity": float(opacity_l.detach())}
-                if cfg.empty_space_mult > 0:
-                    terms["empty_space"] = float(empty_l.detach())
-                if neighbour is not None:
-                    nb = torch.as_tensor(neighbour[sl], device=dp.device)
-                    keep = (nb >= 0)
-                    if keep.any():
-                        nb = torch.where(keep, nb, pidx)
-                        alt = student.render(o, d, nb, tout["t0"], tout["t1"], tout["ray_idx"], cfg.cull_threshold(step),
-                                             cfg.quantize, cams)
-                        cons = charbonnier(alt["rgb"][keep], s_out["rgb"][keep])
-                        loss = loss + share * cfg.consistency_mult * cons
-                        terms["consistency"] = float(cons.detach())
-                opt.zero_grad(set_to_none=False)
-                loss.backward()
-                dp.all_reduce_grads(student.parameters())
-                opt.step()
-                step += 1
-                mse = dp.all_reduce_sum(float(((s_out["rgb"].detach().clamp(0, 1) - target) ** 2).sum())) / (3 * n_rays)
-                psnr = -10 * math.log10(max(mse, 1e-10))
-                rays_s = rate.add(n_rays)
-                advance(1)
-                if dp.is_main and (step % 25 == 0 or step == cfg.steps):
-                    rec = {"step": step, "loss": float(loss.detach()), "psnr_vs_teacher": psnr, "lr_grid": lr_g,
-                           "rays_per_s": rays_s, "cull_alpha": cfg.cull_threshold(step), **terms, "time": time.time()}
-                    runlog.train(rec)
-                    if step % 250 == 0:
-                        console.print(f"step {step:6d}  loss {rec['loss']:.5f}  psnr(teacher) {psnr:5.2f}  {rays_s:7.0f} rays/s",
-                                      highlight=False)
-                if dp.is_main and cfg.val_every and step % cfg.val_every == 0:
-                    vpsnr = validate(student, teacher, ds, val_index, out / "val", step, bg)
-                    runlog.validation(step, vpsnr)
-                    console.print(f"step {step:6d}  validation PSNR {vpsnr:.2f} dB -> {out / 'val'}")
-                if dp.is_main and step % cfg.checkpoint_every == 0 and step < cfg.steps:
-                    save_checkpoint(ckpt, state_dict(step))
-        finally:
-            runlog.close()
+
+    def one_step(step, gen):
+        lr_g = log_linear_lr(step, cfg.steps, cfg.lr_grid, cfg.lr_grid_final, cfg.warmup_steps)
+        lr_m = log_linear_lr(step, cfg.steps, cfg.lr_mlp, cfg.lr_mlp_final, cfg.warmup_steps)
+        opt.param_groups[0]["lr"], opt.param_groups[1]["lr"] = lr_g, lr_m
+        drawn = store.sample_rays(n_rays, gen, patch=3)
+        rays = jitter_patches(drawn, cfg, partition, gen)
+        home = partition.assign(rays["origins"].double().numpy())
+        params_idx = reassign(home, partition, cfg.reassign_fraction, gen)
+        noise = torch.rand(n_rays, teacher.noise_dims, generator=gen)
+        neighbour = random_neighbour(params_idx, partition, gen) if partition.num_alive > 1 else None
+        mine = dp.shard(cfg.batch_patches)
+        sl = slice(mine.start * 9, mine.stop * 9)
+        o, d = rays["origins"][sl].to(dp.device), rays["directions"][sl].to(dp.device)
+        cams = drawn["origins"][sl].to(dp.device)  # un-jittered camera centres: where the MLP lattice is read
+        with torch.no_grad():
+            tout = teacher.render_rays(o, d, torch.tensor(bg, device=dp.device).expand(o.shape[0], 3),
+                                       noise=noise[sl].to(dp.device))
+        pidx = torch.as_tensor(params_idx[sl], device=dp.device)
+        s_out = student.render(o, d, pidx, tout["t0"], tout["t1"], tout["ray_idx"], cfg.cull_threshold(step),
+                               cfg.quantize, cams)
+        share = (sl.stop - sl.start) / n_rays  # this rank's share of the global mean
+        target = tout["rgb"]
+        ssim_l = patch_dssim(s_out["rgb"].view(-1, 3, 3, 3), target.view(-1, 3, 3, 3))
+        if step < cfg.mse_warmup * cfg.steps:
+            rgb_l = 10.0 * ((s_out["rgb"] - target) ** 2).mean()
+            ssim_l = ssim_l * 0
+        else:
+            rgb_l = charbonnier(s_out["rgb"], target)
+        geo_l = (s_out["w"] - tout["w"]).abs().sum() / o.shape[0]
+        opacity_l = (s_out["acc"] - tout["acc"]).abs().mean()
+        loss = share * (cfg.rgb_mult * rgb_l + cfg.dssim_mult * ssim_l + cfg.geometry_weight(step) * geo_l
+                        + cfg.opacity_mult * opacity_l)
+        loss = loss + cfg.mlp_tv_mult * student.mlp.tv_loss() / dp.world
+        if cfg.empty_space_mult > 0:
+            empty_l = empty_space_loss(student, teacher, cfg.empty_space_points, gen, cfg.quantize)
+            loss = loss + cfg.empty_space_mult * empty_l / dp.world
+        terms = {"rgb": float(rgb_l.detach()), "dssim": float(ssim_l.detach()), "geometry": float(geo_l.detach()),
+                 "opacity": float(opacity_l.detach())}
+        if cfg.empty_space_mult > 0:
+            terms["empty_space"] = float(empty_l.detach())
+        if neighbour is not None:
+            nb = torch.as_tensor(neighbour[sl], device=dp.device)
+            keep = (nb >= 0)
+            if keep.any():
+                nb = torch.where(keep, nb, pidx)
+                alt = student.render(o, d, nb, tout["t0"], tout["t1"], tout["ray_idx"], cfg.cull_threshold(step),
+                                     cfg.quantize, cams)
+                cons = charbonnier(alt["rgb"][keep], s_out["rgb"][keep])
+                loss = loss + share * cfg.consistency_mult * cons
+                terms["consistency"] = float(cons.detach())
+        opt.zero_grad(set_to_none=False)
+        loss.backward()
+        dp.all_reduce_grads(student.parameters())
+        opt.step()
+        mse = dp.all_reduce_sum(float(((s_out["rgb"].detach().clamp(0, 1) - target) ** 2).sum())) / (3 * n_rays)
+        return n_rays, {"loss": float(loss.detach()), "psnr_vs_teacher": -10 * math.log10(max(mse, 1e-10)),
+                        "lr_grid": lr_g, "cull_alpha": cfg.cull_threshold(step + 1), **terms}
+
+    def validate(step):
+        return validate_student(student, teacher, ds, val_index, out / "val", step, bg), {}, f"-> {out / 'val'}"
+
+    step = run_steps(out, dp, f"distill K={cfg.k}", cfg.steps, start, cfg.seed, one_step, state_dict, ckpt,
+                     cfg.checkpoint_every, validate, cfg.val_every, cfg.tensorboard, stop_at,
+                     summary=lambda r: f"loss {r['loss']:.5f}  psnr(teacher) {r['psnr_vs_teacher']:5.2f}  "
+                                       f"{r['rays_per_s']:7.0f} rays/s")
     meta["seconds"] = meta.get("seconds", 0.0) + (time.time() - t_start)
     finish_run(dp, ckpt, state_dict, out / CONFIG, meta, step, cfg.steps)
     return out
@@ -298,7 +281,7 @@ def render_student_camera(student: Student, teacher: Teacher, camera, background
     return torch.cat(out).reshape(camera.height, camera.width, 3).numpy()
 
 
-def validate(student, teacher: Teacher, ds, index: int, out_dir: Path, step: int, background) -> float:
+def validate_student(student, teacher: Teacher, ds, index: int, out_dir: Path, step: int, background) -> float:
     """One held-out view next to its ground truth in ``out_dir``; returns PSNR (NaN when the view's camera lies
     outside the partition cube)."""
     from nerfbake.eval.views import validation_image

@@ -2,7 +2,6 @@
 data parallelism). A run folder holds ``config.json``, ``checkpoint.pt``, ``metrics.jsonl`` and ``val/``."""
 from __future__ import annotations
 
-import time
 from dataclasses import asdict
 from pathlib import Path
 
@@ -17,9 +16,8 @@ from nerfbake.teacher.appearance import APPEARANCE_LR_SCALE, ImageAppearance, re
 from nerfbake.teacher.models import SceneBox, build_teacher
 from nerfbake.teacher.presets import TeacherTrainConfig
 from nerfbake.teacher.run import CHECKPOINT, CONFIG
-from nerfbake.train.loop import (RunLog, finish_run, run_complete, DataParallel, Interrupt, RateMeter, git_revision, load_checkpoint, log_linear_lr,
-                                 save_checkpoint, step_decay_lr, step_generator, to_jsonable,
-                                 write_json_atomic)
+from nerfbake.train.loop import (DataParallel, finish_run, git_revision, load_checkpoint, log_linear_lr, run_complete,
+                                 run_steps, step_decay_lr, step_generator, to_jsonable, write_json_atomic)
 
 
 
@@ -162,54 +160,38 @@ def train_teacher(data: str | Path, out: str | Path, cfg: TeacherTrainConfig, re
 
     val_split = "val" if "val" in ds.splits else "test"
     val_index = ds.split(val_split)[0]
-    validate = lambda step: render_validation(model, ds, val_index, out / "val", step)  # noqa: E731
-    val_frame = ds.frames[val_index]
+    val_name = ds.frames[val_index].name
 
-    rate = RateMeter()
-    step = start
-    with Interrupt() as interrupt, progress_bar(f"teacher {cfg.field}", cfg.steps, unit="step") as advance:
-        advance(start)
-        runlog = RunLog(out, dp.is_main, cfg.tensorboard, start_step=start)
-        try:
-            while step < cfg.steps:
-                if interrupt.requested or (stop_at is not None and step >= stop_at):
-                    break
-                gen = step_generator(cfg.seed, step)
-                model.train()
-                model.before_step(step, gen)
-                if cfg.lr_schedule == "step":
-                    lr = step_decay_lr(step, cfg.steps, cfg.lr, cfg.warmup_steps)
-                else:
-                    lr = log_linear_lr(step, cfg.steps, cfg.lr, cfg.lr_final, cfg.warmup_steps)
-                for g in optimizer.param_groups:
-                    g["lr"] = lr * g.get("lr_scale", 1.0)
-                batch = draw_batch(store, model, cfg, gen, dp)
-                loss, terms, render, sq = loss_terms(model, batch, cfg.batch_rays, gen, dp.world, appearance)
-                optimizer.zero_grad(set_to_none=False)  # keeps the hash table's gradient buffer
-                loss.backward()
-                dp.all_reduce_grads(trained)
-                optimizer.step()
-                step += 1
-                mse = dp.all_reduce_sum(float(sq)) / (3 * cfg.batch_rays)
-                psnr = -10 * np.log10(max(mse, 1e-10))
-                rays_s = rate.add(cfg.batch_rays)
-                advance(1)
-                if dp.is_main and (step % 25 == 0 or step == cfg.steps):
-                    rec = {"step": step, "loss": float(loss.detach()), "psnr": psnr, "lr": lr, "rays_per_s": rays_s,
-                           "samples_per_ray": render["num_samples"] / max(1, batch["target"].shape[0]), "time": time.time()}
-                    if hasattr(model, "grid"):
-                        rec["occupancy"] = model.grid.occupancy_fraction
-                    runlog.train(rec)
-                    console.print(f"step {step:6d}  loss {float(loss.detach()):.5f}  psnr {psnr:5.2f}  {rays_s:8.0f} rays/s  "
-                                  f"{rec['samples_per_ray']:.1f} samples/ray", highlight=False) if step % 250 == 0 else None
-                if dp.is_main and cfg.val_every and step % cfg.val_every == 0:
-                    vpsnr = validate(step)
-                    runlog.validation(step, vpsnr, val_view=val_frame.name)
-                    console.print(f"step {step:6d}  validation PSNR {vpsnr:.2f} dB ({val_frame.name}) -> {out / 'val'}")
-                if dp.is_main and step % cfg.checkpoint_every == 0 and step < cfg.steps:
-                    save_checkpoint(ckpt_path, state_dict(step))
-        finally:
-            runlog.close()
+    def validate(step):
+        return (render_validation(model, ds, val_index, out / "val", step), {"val_view": val_name},
+                f"({val_name}) -> {out / 'val'}")
+
+    def one_step(step, gen):
+        model.train()
+        model.before_step(step, gen)
+        if cfg.lr_schedule == "step":
+            lr = step_decay_lr(step, cfg.steps, cfg.lr, cfg.warmup_steps)
+        else:
+            lr = log_linear_lr(step, cfg.steps, cfg.lr, cfg.lr_final, cfg.warmup_steps)
+        for g in optimizer.param_groups:
+            g["lr"] = lr * g.get("lr_scale", 1.0)
+        batch = draw_batch(store, model, cfg, gen, dp)
+        loss, terms, render, sq = loss_terms(model, batch, cfg.batch_rays, gen, dp.world, appearance)
+        optimizer.zero_grad(set_to_none=False)  # keeps the hash table's gradient buffer
+        loss.backward()
+        dp.all_reduce_grads(trained)
+        optimizer.step()
+        mse = dp.all_reduce_sum(float(sq)) / (3 * cfg.batch_rays)
+        rec = {"loss": float(loss.detach()), "psnr": -10 * np.log10(max(mse, 1e-10)), "lr": lr,
+               "samples_per_ray": render["num_samples"] / max(1, batch["target"].shape[0])}
+        if hasattr(model, "grid"):
+            rec["occupancy"] = model.grid.occupancy_fraction
+        return cfg.batch_rays, rec
+
+    step = run_steps(out, dp, f"teacher {cfg.field}", cfg.steps, start, cfg.seed, one_step, state_dict, ckpt_path,
+                     cfg.checkpoint_every, validate, cfg.val_every, cfg.tensorboard, stop_at,
+                     summary=lambda r: f"loss {r['loss']:.5f}  psnr {r['psnr']:5.2f}  {r['rays_per_s']:8.0f} rays/s  "
+                                       f"{r['samples_per_ray']:.1f} samples/ray")
     if start < cfg.steps <= step:  # this call finished the run
         model.after_training(step_generator(cfg.seed, cfg.steps), log=console.print if dp.is_main else None)
     if appearance is not None:

@@ -1,4 +1,5 @@
-"""The shared training-loop machinery.
+"""The shared training loop (:func:`run_steps`) and its machinery; the teacher and the SMERF student both run it,
+each supplying one optimisation step, its checkpoint state and its validation.
 
 * Determinism: every step draws its randomness from ``step_generator(seed, step)``, so a resumed run sees
   exactly the batches an uninterrupted one would, and ranks of a data-parallel run can each take their
@@ -21,7 +22,7 @@ import torch
 import torch.distributed as dist
 
 from nerfbake import atomic
-from nerfbake.progress import console
+from nerfbake.progress import console, progress_bar
 
 
 def step_generator(seed: int, step: int) -> torch.Generator:
@@ -295,3 +296,43 @@ def finish_run(dp: "DataParallel", ckpt_path: Path, state_fn, config_path: Path,
     dp.barrier()
     if step < total:
         console.print(f"stopped at step {step}; checkpoint saved — continue with --resume")
+
+
+def run_steps(out: Path, dp: "DataParallel", desc: str, total: int, start: int, seed: int, step_fn, state_fn,
+              checkpoint: Path, checkpoint_every: int, validate=None, val_every: int = 0, tensorboard: bool = False,
+              stop_at: int | None = None, summary=None) -> int:
+    """Steps ``start`` .. ``total`` of a trainer; returns the step it stopped at (``total``, or earlier on Ctrl-C or
+    at ``stop_at``; the caller then saves with :func:`finish_run`).
+
+    ``step_fn(step, generator)`` runs one optimisation step with the step's own generator (so a resumed run draws
+    exactly what an uninterrupted one would) and returns (rays in the global batch, a record of plain floats for
+    ``metrics.jsonl``). Every 25 steps the record is logged with the step, the rays/s and the time; every 250 the
+    main rank prints ``summary(record)``. Every ``val_every`` steps ``validate(step)`` returns (PSNR, extra record
+    fields, a line to print); every ``checkpoint_every`` the state ``state_fn(step)`` is saved."""
+    rate = RateMeter()
+    step = start
+    with Interrupt() as interrupt, progress_bar(desc, total, unit="step") as advance:
+        advance(start)
+        runlog = RunLog(out, dp.is_main, tensorboard, start_step=start)
+        try:
+            while step < total:
+                if interrupt.requested or (stop_at is not None and step >= stop_at):
+                    break
+                rays, record = step_fn(step, step_generator(seed, step))
+                step += 1
+                rays_s = rate.add(rays)
+                advance(1)
+                if dp.is_main and (step % 25 == 0 or step == total):
+                    record = {"step": step, **record, "rays_per_s": rays_s, "time": time.time()}
+                    runlog.train(record)
+                    if summary is not None and step % 250 == 0:
+                        console.print(f"step {step:6d}  {summary(record)}", highlight=False)
+                if dp.is_main and validate is not None and val_every and step % val_every == 0:
+                    psnr, extra, line = validate(step)
+                    runlog.validation(step, psnr, **extra)
+                    console.print(f"step {step:6d}  validation PSNR {psnr:.2f} dB {line}")
+                if dp.is_main and step % checkpoint_every == 0 and step < total:
+                    save_checkpoint(checkpoint, state_fn(step))
+        finally:
+            runlog.close()
+    return step
