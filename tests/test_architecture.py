@@ -5,6 +5,8 @@
 * render math knows no files, models or routes: ``render/`` imports only ``render/`` (and ``errors``);
 * the two routes stand apart: ``octree/`` never imports ``smerf/`` and the reverse;
 * the library knows no command line: only ``cli.py`` imports argparse;
+* no import cycles among the modules' top-level imports, and no imports inside functions except the lazy ones
+  named in ``LAZY_IMPORTS`` (heavy or optional dependencies) and the CLI's per-command imports;
 * routes read a teacher through its artifact (``teacher/run.py``), never through its trainer (``teacher/train.py``),
   and a SMERF student through ``smerf/run.py`` outside the trainer itself.
 """
@@ -74,3 +76,59 @@ def test_the_library_knows_no_command_line():
                       ([a.name for a in n.names] if isinstance(n, ast.Import) else [n.module])
                       for n in ast.walk(ast.parse(p.read_text())))]
     assert parsers == ["cli.py"]
+
+
+# Imports inside functions, each for one reason: an optional or heavy dependency that only its feature needs, or
+# (cli.py) the module of the command being run, so that `nerfbake --help` starts without torch and Warp.
+LAZY_IMPORTS = {
+    "pycolmap": "structure from motion (nerfbake process)", "mitsuba": "nerfbake synth's renderer",
+    "av": "video intake (process --video)", "scipy": "SciPy's KD-tree and Laplacian, for two functions",
+    "warp": "the kernels' JIT, loaded at the first launch", "matplotlib": "the report's figures",
+    "playwright": "the headless browser of view --benchmark and the viewer tests",
+    "torch": "doctor reports a missing torch instead of failing to start",
+    "torch.utils.tensorboard": "--tensorboard only",
+}
+
+
+def module_level_imports(path: Path) -> set[str]:
+    return {n.module for n in ast.parse(path.read_text()).body
+            if isinstance(n, ast.ImportFrom) and n.module and n.module.startswith("nerfbake")}
+
+
+def test_imports_inside_functions_are_only_the_lazy_ones():
+    wrong = []
+    for path in sorted(PACKAGE.rglob("*.py")):
+        if path.name == "cli.py" and path.parent == PACKAGE:
+            continue
+        for fn in ast.walk(ast.parse(path.read_text())):
+            if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                for n in ast.walk(fn):
+                    if isinstance(n, (ast.Import, ast.ImportFrom)):
+                        names = [a.name for a in n.names] if isinstance(n, ast.Import) else [n.module]
+                        wrong += [f"{path.relative_to(PACKAGE)}:{n.lineno} imports {m} in {fn.name}" for m in names
+                                  if m not in LAZY_IMPORTS and m.split(".")[0] not in LAZY_IMPORTS]
+    assert wrong == []
+
+
+def test_no_import_cycles():
+    graph = {}
+    for path in sorted(PACKAGE.rglob("*.py")):
+        parts = path.relative_to(PACKAGE.parent).with_suffix("").parts
+        name = ".".join(parts[:-1] if parts[-1] == "__init__" else parts)
+        graph[name] = module_level_imports(path)
+    cycles = []
+
+    def visit(node, stack):
+        if node in stack:
+            cycles.append(" -> ".join(stack[stack.index(node):] + [node]))
+            return
+        if node in done:
+            return
+        for dep in sorted(graph.get(node, ())):
+            visit(dep, stack + [node])
+        done.add(node)
+
+    done: set[str] = set()
+    for module in sorted(graph):
+        visit(module, [])
+    assert cycles == []

@@ -140,9 +140,10 @@ def cmd_pipeline(args) -> int:
 
 
 def cmd_report(args) -> int:
+    from nerfbake.pipeline import collect_results
     from nerfbake.report import write_report
 
-    path = write_report(Path(args.run))
+    path = write_report(args.run, collect_results(args.run))
     print(path)
     return 0
 

@@ -23,10 +23,25 @@ from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Callable
 
+from nerfbake.data.formats import load_dataset
 from nerfbake.data.synth import SynthConfig, render_dataset
-from nerfbake.errors import NerfbakeError
+from nerfbake.errors import NerfbakeError, RunFolderError
+from nerfbake.octree.build import build_octree, build_preset
+from nerfbake.octree.compress import compress_tree
+from nerfbake.octree.evaluate import evaluate_tree
+from nerfbake.octree.io import load_tree
+from nerfbake.octree.optimize import optimize_preset, optimize_tree
 from nerfbake.progress import progress_bar
-from nerfbake.train.loop import RUN_CONFIG, DataParallel, run_complete, write_json_atomic
+from nerfbake.report import write_report
+from nerfbake.smerf.bake import bake_student
+from nerfbake.smerf.distill import distill
+from nerfbake.smerf.evaluate import evaluate_assets, evaluate_student
+from nerfbake.smerf.run import distill_preset
+from nerfbake.teacher.evaluate import evaluate_teacher
+from nerfbake.teacher.presets import preset
+from nerfbake.teacher.run import CHECKPOINT, load_teacher
+from nerfbake.teacher.train import train_teacher
+from nerfbake.train.loop import RUN_CONFIG, DataParallel, git_revision, run_complete, write_json_atomic
 
 METHODS = ("octree", "smerf")
 # Photos larger than this on their long side are downscaled by a power of two when no --downscale is given (the
@@ -80,7 +95,6 @@ def resolve_downscale(cfg: PipelineConfig) -> tuple[float, str]:
         return float(cfg.downscale), f"--downscale {cfg.downscale:g}"
     if cfg.teacher is not None:
         return float(cfg.teacher.downscale), "the teacher config's downscale"
-    from nerfbake.data.formats import load_dataset
 
     ds = load_dataset(cfg.data)
     cam = ds.frames[0].camera
@@ -113,8 +127,6 @@ def skip_reason(stage: Stage, run: Path) -> str | None:
 # --- stages ---------------------------------------------------------------------------------------------------------
 
 def teacher_config(cfg: PipelineConfig):
-    from nerfbake.teacher.presets import preset
-
     t = cfg.teacher or preset(cfg.field, cfg.preset)
     if cfg.teacher_steps:
         t.steps = cfg.teacher_steps
@@ -138,17 +150,12 @@ def require_complete(folder: Path) -> None:
 
 
 def run_teacher(cfg: PipelineConfig, run: Path) -> dict:
-    from nerfbake.teacher.train import train_teacher
-
     train_teacher(cfg.data, run / "teacher", teacher_config(cfg), resume=True)
     require_complete(run / "teacher")
     return {"run": str(run / "teacher")}
 
 
 def eval_teacher(cfg: PipelineConfig, run: Path) -> dict:
-    from nerfbake.teacher.evaluate import evaluate_teacher
-    from nerfbake.teacher.run import CHECKPOINT, load_teacher
-
     res = evaluate_teacher(run / "teacher", "test", cfg.eval_views)
     model = load_teacher(run / "teacher")[0]
     weights = 4 * sum(p.numel() for p in model.parameters())
@@ -163,8 +170,6 @@ def octree_paths(run: Path) -> dict[str, Path]:
 
 
 def run_octree_build(cfg: PipelineConfig, run: Path) -> dict:
-    from nerfbake.octree.build import build_octree, build_preset
-
     b = build_preset(cfg.preset)
     if cfg.octree_grid:
         b = replace(b, grid=cfg.octree_grid, autoscale_grid=max(8, min(b.autoscale_grid, cfg.octree_grid // 2)))
@@ -172,8 +177,6 @@ def run_octree_build(cfg: PipelineConfig, run: Path) -> dict:
 
 
 def run_octree_optimize(cfg: PipelineConfig, run: Path) -> dict:
-    from nerfbake.octree.optimize import optimize_preset, optimize_tree
-
     o = optimize_preset(cfg.preset)
     if cfg.octree_epochs:
         o = replace(o, epochs=cfg.octree_epochs)
@@ -186,17 +189,12 @@ def run_octree_optimize(cfg: PipelineConfig, run: Path) -> dict:
 
 
 def run_octree_compress(cfg: PipelineConfig, run: Path) -> dict:
-    from nerfbake.octree.compress import compress_tree
-
     p = octree_paths(run)
     return compress_tree(p["optimized"], p["compressed"], data=cfg.data, downscale=cfg.downscale or 1.0,
                          normalize=teacher_normalize(run)) or {}
 
 
 def eval_octree(cfg: PipelineConfig, run: Path) -> dict:
-    from nerfbake.octree.evaluate import evaluate_tree
-    from nerfbake.octree.io import load_tree
-
     out = {}
     normalize = teacher_normalize(run)
     for name, path in octree_paths(run).items():
@@ -212,8 +210,6 @@ def eval_octree(cfg: PipelineConfig, run: Path) -> dict:
 
 
 def distill_config(cfg: PipelineConfig):
-    from nerfbake.smerf.run import distill_preset
-
     d = replace(cfg.distill, k=cfg.k) if cfg.distill else distill_preset(cfg.preset, k=cfg.k)
     if cfg.distill_steps:
         d.steps = cfg.distill_steps
@@ -226,16 +222,12 @@ def distill_config(cfg: PipelineConfig):
 
 
 def run_distill(cfg: PipelineConfig, run: Path) -> dict:
-    from nerfbake.smerf.distill import distill
-
     distill(run / "teacher", run / "smerf" / "student", distill_config(cfg), resume=True)
     require_complete(run / "smerf" / "student")
     return {"student": str(run / "smerf" / "student")}
 
 
 def eval_student(cfg: PipelineConfig, run: Path) -> dict:
-    from nerfbake.smerf.evaluate import evaluate_student
-
     r = evaluate_student(run / "smerf" / "student", cfg.data, "test", cfg.eval_views)
     return {"method": "SMERF student", **metrics_of(r), "ms_per_frame": r["ms_per_frame"],
             "memory_bytes": r["peak_submodel_bytes"], "disk_bytes": r["disk_bytes"], "num_submodels": r["num_submodels"],
@@ -243,14 +235,10 @@ def eval_student(cfg: PipelineConfig, run: Path) -> dict:
 
 
 def run_bake(cfg: PipelineConfig, run: Path) -> dict:
-    from nerfbake.smerf.bake import bake_student
-
     return bake_student(run / "smerf" / "student", run / "smerf" / "assets", stride=cfg.bake_stride, overwrite=True)
 
 
 def eval_assets(cfg: PipelineConfig, run: Path) -> dict:
-    from nerfbake.smerf.evaluate import evaluate_assets
-
     r = evaluate_assets(run / "smerf" / "assets", cfg.data, "test", cfg.eval_views)
     return {"method": "SMERF baked", **metrics_of(r), "ms_per_frame": r["ms_per_frame"],
             "memory_bytes": r["peak_submodel_bytes"], "disk_bytes": r["disk_bytes"], "num_submodels": r["num_submodels"],
@@ -398,9 +386,7 @@ def run_pipeline(cfg: PipelineConfig, stop_after: str | None = None, log: Callab
     results = collect_results(run)
     if dp.is_main:
         write_json_atomic(run / "results.json", results)
-        from nerfbake.report import write_report
-
-        write_report(run)
+        write_report(run, results)
     dp.barrier()
     return results
 
@@ -408,6 +394,8 @@ def run_pipeline(cfg: PipelineConfig, stop_after: str | None = None, log: Callab
 def collect_results(run: Path) -> dict:
     """``results.json``: one row per method (quality, speed, memory, disk) plus every stage's record."""
     run = Path(run)
+    if not (run / "stages").is_dir():
+        raise RunFolderError(f"{run}: no stages/ folder; not a `nerfbake pipeline` run")
     rows = []
     stages = {}
     for stage in STAGES:  # in pipeline order
@@ -422,7 +410,6 @@ def collect_results(run: Path) -> dict:
         for row in (res.values() if name == "octree_eval" else [res]):
             rows.append(row)
     cfg = json.loads((run / "pipeline.json").read_text())["config"] if (run / "pipeline.json").is_file() else {}
-    from nerfbake.train.loop import git_revision
 
     return {"run": str(run), "config": cfg, "methods": rows, "stages": stages, "git": git_revision()}
 

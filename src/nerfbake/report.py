@@ -5,22 +5,15 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import imageio.v3 as iio
 import numpy as np
 
 from nerfbake import atomic
-from nerfbake.errors import RunFolderError
+from nerfbake.data.formats import load_dataset
+from nerfbake.eval.views import to_png
 from nerfbake.train.loop import training_curve
 
 MB = 1e6
-
-
-def load_results(run: Path) -> dict:
-    from nerfbake.pipeline import collect_results
-
-    run = Path(run)
-    if not (run / "stages").is_dir():
-        raise RunFolderError(f"{run}: no stages/ folder; not a `nerfbake pipeline` run")
-    return collect_results(run)
 
 
 def save_figure(fig, path: Path) -> None:
@@ -54,8 +47,6 @@ def scatter(rows: list[dict], x_key: str, x_label: str, path: Path, scale: float
 
 def strip(rows: list[dict], data: str | None, path: Path) -> str | None:
     """One test view rendered by every method, next to the ground truth; returns the view's name."""
-    import imageio.v3 as iio
-
     folders = [Path(r["images"]) for r in rows if r.get("images") and Path(r["images"]).is_dir()]
     if not folders:
         return None
@@ -68,9 +59,6 @@ def strip(rows: list[dict], data: str | None, path: Path) -> str | None:
     panels = [(r["method"], iio.imread(Path(r["images"]) / name)[..., :3]) for r in rows if r.get("images")
               and (Path(r["images"]) / name).is_file()]
     if data:
-        from nerfbake.data.formats import load_dataset
-        from nerfbake.eval.views import to_png
-
         ds = load_dataset(data)
         for i in ds.split("test"):
             if Path(ds.frames[i].name).stem == Path(name).stem:
@@ -123,10 +111,10 @@ def view_commands(run: Path, results: dict) -> list[str]:
     return out
 
 
-def write_report(run: str | Path) -> Path:
-    """``RUN/report.md`` plus ``RUN/report/*.png``; returns the Markdown path."""
+def write_report(run: str | Path, results: dict) -> Path:
+    """``RUN/report.md`` plus ``RUN/report/*.png`` (and ``results.json``) from a run's collected ``results``
+    (``pipeline.collect_results``); returns the Markdown path."""
     run = Path(run)
-    results = load_results(run)
     atomic.write_json(run / "results.json", results)
     rows = results["methods"]
     fig_dir = run / "report"

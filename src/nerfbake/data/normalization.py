@@ -9,6 +9,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from nerfbake.data.errors import DatasetError
+
 NORMALIZATIONS = ("auto", "forward-facing", "object-centric", "none")  # the --normalize choices; auto: from the cameras
 
 
@@ -124,8 +126,6 @@ def choose(method: str, c2ws: np.ndarray, source, near: float | None = None) -> 
 
     ``auto`` decides from the cameras (:func:`camera_layout`): forward-facing captures get LLFF's recentring when
     the nearest bound is known, everything else the 360° re-centring; the reason is kept in ``Normalization.why``."""
-    from nerfbake.data.errors import DatasetError
-
     if method == "auto":
         layout, why = camera_layout(c2ws)
         if layout == "forward-facing" and near is None:

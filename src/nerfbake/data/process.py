@@ -33,7 +33,10 @@ from PIL import Image
 from nerfbake.atomic import atomic_folder, check_output_folder
 from nerfbake.data.cameras import opencv_to_opengl
 from nerfbake.data.errors import DatasetError
+from nerfbake.data.formats.colmap import colmap_camera
 from nerfbake.data.frames import Intake, intake_images, intake_video, video_info
+from nerfbake.progress import progress_bar
+from nerfbake.signals import terminate_like_ctrl_c
 
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")  # what nerfbake's readers read
 MATCHERS = ("exhaustive", "sequential")
@@ -92,7 +95,6 @@ def _quiet_colmap():
     pycolmap hands SIGTERM to glog, which aborts: take it back so a killed run cleans up."""
     import pycolmap
 
-    from nerfbake.signals import terminate_like_ctrl_c
 
     terminate_like_ctrl_c()
     old = pycolmap.logging.minloglevel
@@ -104,8 +106,6 @@ def _quiet_colmap():
 
 
 def _stage(description: str, total: int, unit: str):
-    from nerfbake.progress import progress_bar
-
     return progress_bar(description, max(1, total), unit=unit)
 
 
@@ -281,8 +281,6 @@ def _too_few_message(intake: Intake, db: Path, registered: list[str], n: int, ne
 
 def camera_fields(cam) -> dict:
     """transforms.json intrinsics of one COLMAP camera (OPENCV with k1 k2 p1 p2 when the model distorts)."""
-    from nerfbake.data.formats.colmap import colmap_camera
-
     fx, fy, cx, cy, dist, model = colmap_camera(cam, Path("sparse/0"))
     fields = {"camera_model": "OPENCV" if model in ("SIMPLE_RADIAL", "RADIAL", "OPENCV") else "PINHOLE",
               "fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy, "w": int(cam.width), "h": int(cam.height)}

@@ -22,6 +22,7 @@ import math
 from dataclasses import dataclass
 from pathlib import Path
 
+import imageio.v3 as iio
 import numpy as np
 
 from nerfbake.atomic import atomic_folder, check_output_folder
@@ -267,7 +268,6 @@ def _to_srgb8(linear: np.ndarray) -> np.ndarray:
 def render_dataset(cfg: SynthConfig, out: Path, progress=None, overwrite: bool = False) -> Path:
     """Render ``cfg.scene`` into a Blender-format dataset at ``out`` (written to a temporary folder, then swapped
     in); a non-empty ``out`` is refused unless ``overwrite``."""
-    import imageio.v3 as iio
     import mitsuba as mi
 
     if cfg.scene not in SCENES:

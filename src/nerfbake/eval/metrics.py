@@ -13,6 +13,7 @@ import torch
 import torch.nn.functional as F
 
 from nerfbake.data.images import load_image_uint8, to_float
+from nerfbake.eval.lpips import lpips
 
 
 def _as_batch(img) -> torch.Tensor:
@@ -90,8 +91,6 @@ def patch_dssim(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
 
 def image_metrics(pred, gt, lpips_nets: tuple[str, ...] = ("alex", "vgg")) -> dict[str, float]:
     """PSNR, SSIM and the requested LPIPS variants for one image pair, as plain floats."""
-    from nerfbake.eval.lpips import lpips
-
     out = {"psnr": float(psnr(pred, gt)[0]), "ssim": float(ssim(pred, gt)[0])}
     for net in lpips_nets:
         out[f"lpips_{net}"] = float(lpips(pred, gt, net)[0])

@@ -14,6 +14,7 @@ import numpy as np
 
 from nerfbake.atomic import atomic_folder, check_output_folder, write_image
 from nerfbake.data.dataset import Dataset
+from nerfbake.data.images import area_downscale
 from nerfbake.eval.metrics import image_metrics
 from nerfbake.progress import progress_bar
 
@@ -118,8 +119,6 @@ def evaluate_views(render: Callable, ds: Dataset, split: str = "test", max_views
 def validation_image(render: Callable, ds: Dataset, index: int, out_dir: Path, step: int, max_width: int = 200) -> float:
     """Render one held-out view (at most ``max_width`` px wide) with ``render(camera) -> (H, W, 3)``, write it next
     to its ground truth as ``out_dir/step_NNNNNNN.png`` and return its PSNR (the trainers' periodic check)."""
-    from nerfbake.data.images import area_downscale
-
     camera = ds.frames[index].camera
     factor = max(1.0, camera.width / max_width)
     cam = camera.scaled(factor)

@@ -7,6 +7,8 @@ import math
 import torch
 from torch import nn
 
+from nerfbake.kernels.hashgrid import hash_encode
+
 
 class PositionalEncoding(nn.Module):
     """[x, sin(2^k x), cos(2^k x)] for k < num_freqs (NeRF eq. 4)."""
@@ -47,8 +49,6 @@ class HashGrid(nn.Module):
         return self.levels * 2
 
     def forward(self, x01: torch.Tensor) -> torch.Tensor:
-        from nerfbake.kernels.hashgrid import hash_encode
-
         return hash_encode(x01, self.table, self.resolution, self.dense)
 
 

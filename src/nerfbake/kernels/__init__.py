@@ -6,8 +6,10 @@ releases the GIL while a kernel runs) along an axis whose work items write disjo
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import functools
 import os
+import sys
 from concurrent.futures import ThreadPoolExecutor
 
 
@@ -25,8 +27,6 @@ def warp():
 
 
 def _has_cuda_driver() -> bool:
-    import ctypes
-
     for name in ("libcuda.so.1", "libcuda.so", "nvcuda.dll"):
         try:
             ctypes.CDLL(name)
@@ -38,8 +38,6 @@ def _has_cuda_driver() -> bool:
 
 @contextlib.contextmanager
 def _quiet_stderr():
-    import sys
-
     sys.stderr.flush()
     saved = os.dup(2)
     devnull = os.open(os.devnull, os.O_WRONLY)

@@ -15,7 +15,7 @@ from __future__ import annotations
 import torch
 
 from nerfbake.kernels import cpu_threads, device_of, ensure_loaded, launch_chunks, parallel_map, warp
-from nerfbake.render.quantize import RANGE_DENSITY, RANGE_FEATURES
+from nerfbake.render.quantize import RANGE_DENSITY, RANGE_FEATURES, simulate
 
 wp = warp()
 wp.set_module_options({"enable_backward": False})
@@ -188,8 +188,6 @@ def merf_lookup(z, sm, sparse, planes, s: int, t: int, quantize: bool = True):
 
 def merf_lookup_reference(z, sm, sparse, planes, s: int, t: int, quantize: bool = True):
     """Plain torch version of the same lookup (for tests): differentiable through autograd."""
-    from nerfbake.render.quantize import simulate
-
     def q(v):
         if not quantize:
             return v

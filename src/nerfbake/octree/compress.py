@@ -27,8 +27,9 @@ from pathlib import Path
 
 import numpy as np
 
-from nerfbake.octree.io import COMPRESSION_KEY, env_map_arrays, half_precision, load_tree, tree_from_arrays, write_npz
+from nerfbake.data.formats import load_dataset
 from nerfbake.octree.evaluate import ViewLoss
+from nerfbake.octree.io import COMPRESSION_KEY, env_map_arrays, half_precision, load_tree, tree_from_arrays, write_npz
 from nerfbake.octree.tree import Octree
 from nerfbake.progress import progress_bar
 
@@ -331,8 +332,6 @@ def compress_tree(tree_path: str | Path, out: str | Path, bits: int = 16, retain
     if not q.alive.any():
         raise ValueError(f"{tree_path}: no leaf has sigma > {sigma_thresh}; lower --sigma-thresh")
     if band_bits is None and data is not None:
-        from nerfbake.data.formats import load_dataset
-
         loss = ViewLoss(tree, load_dataset(data, downscale=downscale, normalize=normalize), views)
         choice = choose_allocation(q, loss, retain, sigma_thresh, target_db)
         band_bits, sigma_thresh = choice["bits_per_band"], choice["sigma_thresh"]

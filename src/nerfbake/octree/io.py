@@ -17,6 +17,7 @@ import ast
 import json
 import struct
 import zipfile
+import zlib
 from pathlib import Path
 
 import numpy as np
@@ -253,8 +254,6 @@ def volrend_problems(path: str | Path) -> list[str]:
             usize, csize = struct.unpack_from("<QQ", extra, 4)
         body = raw[pos + 30 + nlen + xlen: pos + 30 + nlen + xlen + csize]
         if method == 8:
-            import zlib
-
             body = zlib.decompress(body, -15)
         pos += 30 + nlen + xlen + csize
         if body[:6] != b"\x93NUMPY":

@@ -13,10 +13,11 @@ from nerfbake.data.cameras import Camera
 from nerfbake.data.formats.pose_file import read_pose_file
 from nerfbake.data.rays import camera_rays
 from nerfbake.eval.views import render_views_to_folder
+from nerfbake.kernels.octree import render_forward
 from nerfbake.octree.io import load_tree
 from nerfbake.octree.tree import Octree
-from nerfbake.render.packed import packed_composite, packed_weights
 from nerfbake.render.envmap import sample_equirect
+from nerfbake.render.packed import packed_composite, packed_weights
 from nerfbake.render.sh import sh_basis
 from nerfbake.train.loop import default_device
 
@@ -64,8 +65,6 @@ class RenderOptions:
 
 def render_rays(tree: Octree, origins: torch.Tensor, dirs: torch.Tensor, opts: RenderOptions | None = None) -> dict:
     """Kernel renderer: rgb (R, 3), depth (R,), alpha (R,) for world rays with unit directions."""
-    from nerfbake.kernels.octree import render_forward
-
     opts = opts or RenderOptions()
     opts.basis_range(tree.num_basis)
     return render_forward(tree, origins.to(tree.device), dirs.to(tree.device), opts)

@@ -21,6 +21,7 @@ import gzip
 import json
 import os
 import shutil
+import time
 from pathlib import Path
 
 import numpy as np
@@ -28,12 +29,20 @@ import torch
 import torch.nn.functional as F
 
 from nerfbake.atomic import DIR_MODE, check_output_folder, remove_stale_temps, replace_folder, temp_name
+from nerfbake.data.formats import load_dataset
+from nerfbake.data.rays import camera_rays, pixel_grid
 from nerfbake.errors import NerfbakeError
 from nerfbake.progress import console, progress_bar
-from nerfbake.smerf.deferred_mlp import deferred_mlp_text
 from nerfbake.render.quantize import RANGE_DENSITY, RANGE_FEATURES, to_bytes
+from nerfbake.smerf.assets import VIEWER_FROM_TRAIN
+from nerfbake.smerf.baked_render import ViewerCamera
+from nerfbake.smerf.deferred_mlp import deferred_mlp_text
+from nerfbake.smerf.distill import teacher_background
+from nerfbake.smerf.run import load_student
 from nerfbake.smerf.validate import ATLAS_BLOCK, MAX_ATLAS_SIDE, OCCUPANCY_FACTORS
 from nerfbake.teacher.protocol import Teacher
+from nerfbake.teacher.run import load_teacher
+from nerfbake.train.loop import DataParallel
 
 BLOCK = 8
 MAX_BLOCKS_PER_AXIS = MAX_ATLAS_SIDE // ATLAS_BLOCK  # 227, also below the 255 "empty" marker
@@ -48,8 +57,6 @@ class BakeError(NerfbakeError):
 def alive_voxels(student, teacher: Teacher, cameras, params_idx: int, threshold: float, background, stride: int = 2,
                  chunk: int = 1 << 13, progress=None) -> torch.Tensor:
     """(T, T, T) bool over contracted space (viewer axes): voxels next to a sample the submodel really shows."""
-    from nerfbake.data.rays import camera_rays, pixel_grid
-
     t = student.cfg.triplane_resolution
     alive = torch.zeros(t ** 3, dtype=torch.bool)
     corners = torch.tensor([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)])
@@ -208,9 +215,6 @@ def pack_atlas(sparse: torch.Tensor, blocks: torch.Tensor) -> tuple[np.ndarray, 
 def viewer_camera(camera, partition, near: float = 0.02, far: float = 100.0):
     """A dataset camera as the viewer's three.js camera: centre and rotation in the viewer frame (partition cube,
     axes (-x, z, y)), projection from the intrinsics (pixel centres at +0.5)."""
-    from nerfbake.smerf.assets import VIEWER_FROM_TRAIN
-    from nerfbake.smerf.baked_render import ViewerCamera
-
     w, h = camera.width, camera.height
     proj = np.array([[2 * camera.fx / w, 0, 1 - 2 * camera.cx / w, 0],
                      [0, 2 * camera.fy / h, 2 * camera.cy / h - 1, 0],
@@ -304,14 +308,6 @@ def bake_student(student_dir: str | Path, out: str | Path, stride: int = 2, over
 
     Under ``torchrun`` the submodels are dealt out over the ranks (submodel p on rank p mod N), all writing into
     one temporary folder beside ``out`` that rank 0 completes and renames once every rank is done."""
-    import time
-
-    from nerfbake.data.formats import load_dataset
-    from nerfbake.smerf.distill import teacher_background
-    from nerfbake.smerf.run import load_student
-    from nerfbake.teacher.run import load_teacher
-    from nerfbake.train.loop import DataParallel
-
     out = Path(out)
     dp = DataParallel()
     if dp.is_main:

@@ -13,6 +13,7 @@ import torch
 
 from nerfbake.atomic import check_output_folder
 from nerfbake.eval.views import render_views_to_folder
+from nerfbake.kernels.smerf_march import march_baked, to_warp_scene
 from nerfbake.smerf.assets import VIEWER_FROM_TRAIN, AssetError, SceneAssets
 from nerfbake.smerf.deferred_mlp import deferred_inputs
 
@@ -131,8 +132,6 @@ def render_baked(scene: SceneAssets, cam: ViewerCamera, step_mult: int = 1, visi
     ``stepMult``: a whole number that divides the step and multiplies the step budget (0.5 would leave no steps).
     The submodel is the camera's own unless ``params_idx`` names another (what a viewer shows while the camera's
     submodel is still streaming in; how far apart two submodels' pictures of one view are)."""
-    from nerfbake.kernels.smerf_march import march_baked, to_warp_scene
-
     if step_mult < 1 or int(step_mult) != step_mult:
         raise ValueError(f"step_mult={step_mult}: the viewer's stepMult is a whole number >= 1 (2 halves the step)")
 

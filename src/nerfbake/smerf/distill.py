@@ -35,15 +35,28 @@ import torch
 
 from nerfbake.data.formats import load_dataset
 from nerfbake.data.pixels import PixelStore
+from nerfbake.data.rays import camera_rays
 from nerfbake.eval.metrics import patch_dssim
+from nerfbake.eval.views import validation_image
 from nerfbake.progress import console, progress_bar
 from nerfbake.render.packed import packed_median_depth
 from nerfbake.smerf.partition import Partition, PartitionError
 from nerfbake.smerf.run import CHECKPOINT, CONFIG, DistillConfig
 from nerfbake.smerf.student import Student
 from nerfbake.teacher.protocol import Teacher
-from nerfbake.train.loop import (DataParallel, finish_run, git_revision, load_checkpoint, log_linear_lr, run_complete,
-                                 run_steps, to_jsonable, write_json_atomic)
+from nerfbake.teacher.run import load_teacher
+from nerfbake.train.loop import (
+    DataParallel,
+    finish_run,
+    git_revision,
+    load_checkpoint,
+    log_linear_lr,
+    run_complete,
+    run_steps,
+    to_jsonable,
+    write_json_atomic,
+)
+
 
 def charbonnier(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     """The authors' per-ray "RMSE": mean of sqrt(1e-6 + d^2)."""
@@ -141,8 +154,6 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
             stop_at: int | None = None) -> Path:
     """Train a student from the teacher run ``teacher_run`` into ``out`` (see the module docstring); ``resume``
     continues a saved folder, ``stop_at`` ends early at that step (for tests of resuming). Returns ``out``."""
-    from nerfbake.teacher.run import load_teacher
-
     out = Path(out)
     dp = DataParallel()
     teacher, tcfg, tmeta, _ = load_teacher(Path(teacher_run))
@@ -264,8 +275,6 @@ def render_student_camera(student: Student, teacher: Teacher, camera, background
                           params_idx: int | None = None) -> np.ndarray:
     """(H, W, 3) image of the student on the teacher's (deterministic) intervals; the camera's submodel is chosen
     from its position (inf-norm rule) unless ``params_idx`` is given."""
-    from nerfbake.data.rays import camera_rays
-
     rays = camera_rays(camera)
     o, d = rays["origins"].reshape(-1, 3), rays["directions"].reshape(-1, 3)
     dev = student.sparse.device
@@ -284,8 +293,6 @@ def render_student_camera(student: Student, teacher: Teacher, camera, background
 def validate_student(student, teacher: Teacher, ds, index: int, out_dir: Path, step: int, background) -> float:
     """One held-out view next to its ground truth in ``out_dir``; returns PSNR (NaN when the view's camera lies
     outside the partition cube)."""
-    from nerfbake.eval.views import validation_image
-
     try:
         return validation_image(lambda cam: render_student_camera(student, teacher, cam, background), ds, index,
                                 out_dir, step)

@@ -8,14 +8,19 @@ from pathlib import Path
 from nerfbake.data.formats import load_dataset
 from nerfbake.eval.views import evaluate_views
 from nerfbake.smerf.assets import AssetError, SceneAssets, read_params
-from nerfbake.train.loop import git_revision, write_json_atomic
+from nerfbake.smerf.bake import viewer_camera
+from nerfbake.smerf.baked_render import render_baked
+from nerfbake.smerf.distill import render_student_camera
+from nerfbake.smerf.partition import Partition
+from nerfbake.smerf.run import load_student
+from nerfbake.smerf.validate import asset_problems
+from nerfbake.teacher.run import load_teacher
+from nerfbake.train.loop import default_device, git_revision, write_json_atomic
 
 
 def asset_summary(root: str | Path) -> dict:
     """Submodels, their disk sizes (the whole scene and the largest one a viewer holds at a time, with and without the
     deferred-MLP file every folder repeats) and format check."""
-    from nerfbake.smerf.validate import asset_problems
-
     scene = SceneAssets.open(root)
     subs = []
     for params_idx, sm in enumerate(scene.params["params_to_sm"]):
@@ -45,11 +50,6 @@ def _finish(result: dict, out_dir: Path, split: str, extra: dict) -> dict:
 def evaluate_student(student_dir: str | Path, data: str | Path | None = None, split: str = "test",
                      max_views: int | None = None, write_images: bool = True, downscale: float | None = None) -> dict:
     """``downscale`` None evaluates at the one the student was distilled at."""
-    from nerfbake.smerf.distill import render_student_camera
-    from nerfbake.smerf.run import load_student
-    from nerfbake.teacher.run import load_teacher
-    from nerfbake.train.loop import default_device
-
     student_dir = Path(student_dir)
     student, cfg, meta = load_student(student_dir)
     dev = default_device()
@@ -82,10 +82,6 @@ def evaluate_assets(assets: str | Path, data: str | Path | None = None, split: s
                     downscale: float | None = None) -> dict:
     """Quality of baked assets on ``split`` of ``data`` (the dataset ``bake.json`` records when None), rendered
     by the viewer-exact renderer at ``step_mult`` x the viewer's step; metrics, ms per frame, submodels, bytes."""
-    from nerfbake.smerf.bake import viewer_camera
-    from nerfbake.smerf.baked_render import render_baked
-    from nerfbake.smerf.partition import Partition
-
     assets = Path(assets)
     record = bake_record(assets)
     partition = Partition.from_json(record["partition"])

@@ -10,7 +10,14 @@ from pathlib import Path
 
 import numpy as np
 
+from nerfbake.atomic import write_image
+from nerfbake.eval.metrics import psnr
+from nerfbake.eval.views import to_png
+from nerfbake.smerf.bake import viewer_camera
+from nerfbake.smerf.baked_render import render_baked
+from nerfbake.smerf.distill import render_student_camera, teacher_background
 from nerfbake.smerf.partition import Partition
+from nerfbake.teacher.evaluate import render_camera
 from nerfbake.teacher.protocol import Teacher
 
 
@@ -39,14 +46,6 @@ def compare_across_boundary(student, teacher: Teacher, ds, split: str, pairs: li
     into ``split``), for the student on the teacher's intervals and, given baked ``scene`` assets, for the viewer's
     picture. ``seamless``: home vs neighbour is closer than home vs teacher. Optional PNG rows (teacher | home |
     neighbour [| baked home | baked neighbour]) go to ``image_dir``."""
-    from nerfbake.atomic import write_image
-
-    from nerfbake.eval.metrics import psnr
-    from nerfbake.eval.views import to_png
-    from nerfbake.smerf.bake import viewer_camera
-    from nerfbake.smerf.baked_render import render_baked
-    from nerfbake.smerf.distill import render_student_camera, teacher_background
-    from nerfbake.teacher.evaluate import render_camera
 
     def db(a, b) -> float:
         return round(float(psnr(a, b)), 2)

@@ -11,14 +11,26 @@ import torch
 from nerfbake.data.dataset import Dataset, object_box
 from nerfbake.data.formats import load_dataset
 from nerfbake.data.pixels import PixelStore
+from nerfbake.eval.views import validation_image
 from nerfbake.progress import console, progress_bar
 from nerfbake.teacher.appearance import APPEARANCE_LR_SCALE, ImageAppearance, resolve_appearance
+from nerfbake.teacher.evaluate import render_camera
 from nerfbake.teacher.models import SceneBox, build_teacher
 from nerfbake.teacher.presets import TeacherTrainConfig
 from nerfbake.teacher.run import CHECKPOINT, CONFIG
-from nerfbake.train.loop import (DataParallel, finish_run, git_revision, load_checkpoint, log_linear_lr, run_complete,
-                                 run_steps, step_decay_lr, step_generator, to_jsonable, write_json_atomic)
-
+from nerfbake.train.loop import (
+    DataParallel,
+    finish_run,
+    git_revision,
+    load_checkpoint,
+    log_linear_lr,
+    run_complete,
+    run_steps,
+    step_decay_lr,
+    step_generator,
+    to_jsonable,
+    write_json_atomic,
+)
 
 
 def scene_box(ds: Dataset) -> SceneBox:
@@ -103,9 +115,6 @@ def loss_terms(model, batch: dict, total_rays: int, gen: torch.Generator, world:
 
 def render_validation(model, ds: Dataset, index: int, out_dir: Path, step: int) -> float:
     """One held-out view next to its ground truth in ``out_dir``, rendered in eval mode; returns PSNR."""
-    from nerfbake.eval.views import validation_image
-    from nerfbake.teacher.evaluate import render_camera
-
     def render(cam):
         was_training = model.training
         model.eval()

@@ -22,6 +22,7 @@ import torch
 import torch.distributed as dist
 
 from nerfbake import atomic
+from nerfbake.errors import RunFolderError
 from nerfbake.progress import console, progress_bar
 
 
@@ -67,10 +68,8 @@ def save_checkpoint(path: Path, state: dict) -> None:
 
 
 def load_checkpoint(path: Path) -> dict:
-    path = Path(path)
     """Tensors and plain containers only (``weights_only``): a checkpoint from elsewhere cannot run pickled code."""
-    from nerfbake.errors import RunFolderError
-
+    path = Path(path)
     if not path.is_file():
         raise RunFolderError(f"{path}: no checkpoint here; train first or point --run at a training output folder")
     try:

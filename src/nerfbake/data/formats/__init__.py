@@ -5,10 +5,15 @@ from pathlib import Path
 
 from nerfbake.data.dataset import Dataset
 from nerfbake.data.errors import DatasetError
+from nerfbake.data.formats.blender import read_blender
+from nerfbake.data.formats.colmap import find_sparse_dir, read_colmap
+from nerfbake.data.formats.llff import read_llff
+from nerfbake.data.formats.transforms import read_transforms
 from nerfbake.data.normalization import NORMALIZATIONS
 from nerfbake.errors import reading
 
-FORMATS = ("blender", "llff", "colmap", "transforms")
+READERS = {"blender": read_blender, "llff": read_llff, "colmap": read_colmap, "transforms": read_transforms}
+FORMATS = tuple(READERS)
 
 
 def detect_format(root: Path) -> str:
@@ -26,8 +31,6 @@ def detect_format(root: Path) -> str:
         return "transforms"
     if (root / "poses_bounds.npy").is_file():
         return "llff"
-    from nerfbake.data.formats.colmap import find_sparse_dir
-
     if find_sparse_dir(root) is not None:
         return "colmap"
     raise DatasetError(
@@ -49,15 +52,8 @@ def load_dataset(root: str | Path, format: str | None = None, downscale: float =
             raise DatasetError(f"{root}: a Blender-format scene keeps the frame it was rendered in; --normalize applies to "
                                "LLFF, COLMAP and transforms.json captures (leave it at auto)")
         options["normalize"] = normalize
-    if fmt == "blender":
-        from nerfbake.data.formats.blender import read_blender as reader
-    elif fmt == "llff":
-        from nerfbake.data.formats.llff import read_llff as reader
-    elif fmt == "colmap":
-        from nerfbake.data.formats.colmap import read_colmap as reader
-    elif fmt == "transforms":
-        from nerfbake.data.formats.transforms import read_transforms as reader
-    else:
+    reader = READERS.get(fmt)
+    if reader is None:
         raise DatasetError(f"{root}: unknown dataset format {fmt!r}; choose one of {', '.join(FORMATS)}")
     if root.is_file():
         root = root.parent
