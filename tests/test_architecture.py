@@ -132,3 +132,12 @@ def test_no_import_cycles():
     for module in sorted(graph):
         visit(module, [])
     assert cycles == []
+
+
+def test_every_public_function_of_the_math_and_the_routes_says_what_it_does():
+    missing = [f"{path.relative_to(PACKAGE)}:{node.lineno} {node.name}"
+               for package in ("kernels", "render", "octree", "smerf") for path in sorted((PACKAGE / package).rglob("*.py"))
+               for node in ast.parse(path.read_text()).body
+               if isinstance(node, (ast.FunctionDef, ast.ClassDef)) and not node.name.startswith("_")
+               and not ast.get_docstring(node)]
+    assert missing == []

@@ -15,6 +15,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 @functools.lru_cache(maxsize=1)
 def warp():
+    """The ``warp`` module, initialised once (quietly on machines without a CUDA driver)."""
     import warp as wp
 
     wp.config.log_level = 30  # warnings only: no banner on every command
@@ -51,6 +52,7 @@ def _quiet_stderr():
 
 
 def device_of(tensor) -> str:
+    """Warp's device string for a torch tensor's device ("cpu" or "cuda:N")."""
     return "cpu" if tensor.device.type == "cpu" else f"cuda:{tensor.device.index or 0}"
 
 
@@ -60,6 +62,7 @@ def _pool() -> ThreadPoolExecutor:
 
 
 def cpu_threads() -> int:
+    """Threads a CPU launch is split over: ``NERFBAKE_THREADS`` or the cores this process may use."""
     return max(1, int(os.environ.get("NERFBAKE_THREADS", len(os.sched_getaffinity(0)))))
 
 

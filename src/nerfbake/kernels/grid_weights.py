@@ -35,6 +35,8 @@ def mark_weights(
     block_live: wp.array3d(dtype=wp.uint8), box_min: wp.vec3, voxel: wp.vec3, weight_thresh: float, ray0: int,
     keep: wp.array3d(dtype=wp.uint8),
 ):
+    """One thread per ray (from ``ray0``): march the dense ``sigma`` (G, G, G) grid and set ``keep`` (G, G, G) where
+    a voxel's compositing weight reaches ``weight_thresh`` (8^3 blocks ``block_live`` marks empty are skipped)."""
     r = ray0 + wp.tid()
     g = sigma.shape[0]
     # march in voxel units, where the grid is the cube [0, g]^3 and voxels are unit cubes

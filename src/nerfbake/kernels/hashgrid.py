@@ -67,6 +67,8 @@ def hash_forward(
     block: int,
     out: wp.array2d(dtype=wp.vec2),
 ):
+    """Thread (level, block of ``block`` points): the trilinear features of points ``x`` (N, 3) in [0, 1]^3 at one
+    level of ``table`` (L, T) vec2 (hashed, or indexed directly where ``dense``) into ``out`` (N, L) vec2."""
     j, b = wp.tid()
     level = level0 + j * level_stride
     res = resolution[level]
@@ -92,6 +94,8 @@ def hash_backward(
     block: int,
     grad_table: wp.array2d(dtype=wp.vec2),
 ):
+    """Thread (level, block of points): scatter ``grad_out`` (N, L) vec2 into ``grad_table`` (L, T) vec2 with
+    :func:`hash_forward`'s corner weights."""
     j, b = wp.tid()
     level = level0 + j * level_stride
     res = resolution[level]

@@ -22,6 +22,8 @@ wp.set_module_options({"enable_backward": False})
 
 @wp.func
 def occupied(p: wp.vec3, box_min: wp.vec3, inv_cell: wp.vec3, grid: wp.array3d(dtype=wp.uint8)) -> int:
+    """1 if point ``p`` lies in an occupied cell of ``grid`` (G, G, G) over the box from ``box_min`` (cell size 1 /
+    ``inv_cell``), else 0."""
     g = grid.shape[0]
     q = wp.cw_mul(p - box_min, inv_cell)
     i = int(wp.floor(q[0]))
@@ -65,6 +67,8 @@ def march_count(
     box_min: wp.vec3, inv_cell: wp.vec3, dt: float, max_steps: int, centre: wp.vec3, inv_half: wp.vec3,
     contracted: int, ray0: int, counts: wp.array(dtype=wp.int32),
 ):
+    """One thread per ray (from ``ray0``): how many intervals of length ``dt`` (stretched by the contraction where
+    ``contracted``) between ``t_near`` and ``t_far`` fall in occupied cells, into ``counts`` (R,)."""
     r = ray0 + wp.tid()
     o = origins[r]
     d = dirs[r]
@@ -89,6 +93,8 @@ def march_write(
     contracted: int, ray0: int, starts: wp.array(dtype=wp.int32),
     ray_idx: wp.array(dtype=wp.int32), t0: wp.array(dtype=float), t1: wp.array(dtype=float),
 ):
+    """One thread per ray: the intervals :func:`march_count` counted, written from ``starts[r]`` into ``ray_idx``,
+    ``t0``, ``t1`` (S,)."""
     r = ray0 + wp.tid()
     o = origins[r]
     d = dirs[r]

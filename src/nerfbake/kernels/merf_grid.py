@@ -27,6 +27,8 @@ FEATURE_LO, FEATURE_HI = wp.constant(RANGE_FEATURES[0]), wp.constant(RANGE_FEATU
 
 @wp.func
 def quantized(x: float, channel: int, enabled: int) -> float:
+    """``x`` rounded as the 8-bit bake stores channel ``channel`` (0: density, else a feature) when ``enabled``,
+    unchanged otherwise."""
     if enabled == 0:
         return x
     lo = FEATURE_LO
@@ -86,6 +88,9 @@ def plane_corner(z: wp.vec3, t: int, k: int, c: int):
 def lookup_forward(z: wp.array(dtype=wp.vec3), sm: wp.array(dtype=wp.int32), sparse: wp.array2d(dtype=wp.float32),
                    planes: wp.array2d(dtype=wp.float32), s: int, t: int, quantize: int, start: int,
                    out_sparse: wp.array2d(dtype=wp.float32), out_planes: wp.array2d(dtype=wp.float32)):
+    """One thread per point (from ``start``): the 8 channels of contracted point ``z[n]`` in submodel ``sm[n]``,
+    trilinear from the sparse grid (S^3 per submodel) into ``out_sparse`` (N, 8) and bilinear from the three T^2
+    planes into ``out_planes`` (N, 8)."""
     n = wp.tid() + start
     p = z[n]
     sbase = sm[n] * s * s * s
@@ -108,6 +113,8 @@ def lookup_forward(z: wp.array(dtype=wp.vec3), sm: wp.array(dtype=wp.int32), spa
 def lookup_backward(z: wp.array(dtype=wp.vec3), sm: wp.array(dtype=wp.int32), grad_sparse_out: wp.array2d(dtype=wp.float32),
                     grad_planes_out: wp.array2d(dtype=wp.float32), s: int, t: int, ch0: int, ch_stride: int,
                     grad_sparse: wp.array2d(dtype=wp.float32), grad_planes: wp.array2d(dtype=wp.float32)):
+    """Thread (channel, point): scatter the two outputs' gradients (N, 8) into ``grad_sparse`` and ``grad_planes``
+    with :func:`lookup_forward`'s weights."""
     j, n = wp.tid()
     ch = ch0 + j * ch_stride
     p = z[n]

@@ -126,6 +126,8 @@ def ray_setup(o: wp.vec3, d: wp.vec3, offset: wp.vec3, invradius: wp.vec3, bb_mi
 
 @wp.func
 def leaf_color(data: wp.array2d(dtype=float), slot: int, basis: vec25, nb: int, lo: int, hi: int) -> wp.vec3:
+    """RGB of leaf ``slot``: the SH components [lo, hi) of ``data`` (leaves, 3 * nb + 1) dotted with ``basis``,
+    through a sigmoid (svox's convention)."""
     c = wp.vec3()
     for ch in range(3):
         s = float(0.0)
@@ -142,6 +144,8 @@ def octree_forward(
     nb: int, lo: int, hi: int, step_size: float, sigma_thresh: float, stop_thresh: float, background: wp.vec3,
     ray0: int, rgb: wp.array(dtype=wp.vec3), depth: wp.array(dtype=float), alpha: wp.array(dtype=float),
 ):
+    """One thread per ray (from ``ray0``): volrend's march through the tree (``child`` links, ``data`` leaves) ->
+    ``rgb`` (R, 3) on ``background``, expected ``depth`` (R,) and ``alpha`` (R,)."""
     r = ray0 + wp.tid()
     d = dirs[r]
     ot, dt, to_world, t, t_end = ray_setup(origins[r], d, offset, invradius, bb_min, bb_max)
@@ -181,6 +185,8 @@ def octree_backward(
     nb: int, lo: int, hi: int, step_size: float, sigma_thresh: float, background: wp.vec3,
     ray0: int, rgb_out: wp.array(dtype=wp.vec3), grad_rgb: wp.array(dtype=wp.vec3), grad: wp.array2d(dtype=float),
 ):
+    """One thread per ray: the analytic gradient of :func:`octree_forward`'s colour (given ``rgb_out`` and
+    ``grad_rgb``, (R, 3)) with respect to every leaf's values, added into ``grad`` (leaves, data_dim)."""
     r = ray0 + wp.tid()
     d = dirs[r]
     g = grad_rgb[r]

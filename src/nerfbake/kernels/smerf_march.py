@@ -33,6 +33,7 @@ vec8 = wp.types.vector(length=8, dtype=wp.float32)
 
 @wp.func
 def major_axis(v: wp.vec3) -> int:
+    """Index (0, 1, 2) of the component of ``v`` with the largest magnitude."""
     ax = wp.abs(v[0])
     ay = wp.abs(v[1])
     az = wp.abs(v[2])
@@ -45,11 +46,13 @@ def major_axis(v: wp.vec3) -> int:
 
 @wp.func
 def max_abs(v: wp.vec3) -> float:
+    """The inf-norm of ``v``."""
     return wp.max(wp.abs(v[0]), wp.max(wp.abs(v[1]), wp.abs(v[2])))
 
 
 @wp.func
 def contract(x: wp.vec3) -> wp.vec3:
+    """MERF's piecewise-projective contraction of world point ``x`` into [-2, 2]^3 (identity inside the unit cube)."""
     m = max_abs(x)
     if m <= 1.0:
         return x
@@ -62,6 +65,7 @@ def contract(x: wp.vec3) -> wp.vec3:
 
 @wp.func
 def uncontract(z: wp.vec3) -> wp.vec3:
+    """The inverse of :func:`contract` for ``z`` in (-2, 2)^3."""
     m = max_abs(z)
     if m <= 1.0:
         return z
@@ -75,6 +79,7 @@ def uncontract(z: wp.vec3) -> wp.vec3:
 
 @wp.func
 def slab(lo: wp.vec3, hi: wp.vec3, o: wp.vec3, inv_d: wp.vec3) -> wp.vec2:
+    """(t_enter, t_exit) of the ray ``o + t d`` through the box [lo, hi] (``inv_d`` = 1 / d)."""
     ta = wp.cw_mul(lo - o, inv_d)
     tb = wp.cw_mul(hi - o, inv_d)
     tmin = wp.max(wp.max(wp.min(ta[0], tb[0]), wp.min(ta[1], tb[1])), wp.min(ta[2], tb[2]))
@@ -146,6 +151,8 @@ class Quadrant:
 
 @wp.func
 def quadrant_setup(o: wp.vec3, d: wp.vec3, tp: float, tq: float, occ_lo: wp.vec3, occ_hi: wp.vec3) -> Quadrant:
+    """The contraction region the ray enters at ``tp`` (the core or one of six shells) and where it leaves it (at
+    most ``tq``), with the occupied box's span inside it."""
     xp = o + tp * d
     lo = wp.vec3(-1.0, -1.0, -1.0)
     hi = wp.vec3(1.0, 1.0, 1.0)
@@ -174,6 +181,8 @@ def quadrant_setup(o: wp.vec3, d: wp.vec3, tp: float, tq: float, occ_lo: wp.vec3
 
 @wp.func
 def texel3(grid: wp.array3d(dtype=wp.uint8), c: wp.vec3) -> float:
+    """The value of the 3-D byte texture ``grid`` at the texel holding ``c`` (texel units, clamped), as the viewer's
+    texelFetch."""
     n0 = grid.shape[0]
     n1 = grid.shape[1]
     n2 = grid.shape[2]
@@ -207,6 +216,8 @@ def trilerp(tex: wp.array4d(dtype=wp.uint8), s: wp.vec3, ch: int) -> float:
 
 @wp.func
 def bilerp(tex: wp.array4d(dtype=wp.uint8), layer: int, u: float, v: float, ch: int) -> float:
+    """Bilinear read of channel ``ch`` of plane ``layer`` of ``tex`` (3, T, T, C) at (u, v) in [0, 1]^2, as WebGL's
+    LINEAR filter (texel centres at half-integers)."""
     n = tex.shape[1]
     x = u * float(n) - 0.5
     y = v * float(n) - 0.5
@@ -226,16 +237,20 @@ def bilerp(tex: wp.array4d(dtype=wp.uint8), layer: int, u: float, v: float, ch: 
 
 @wp.func
 def plane_sum(tex: wp.array4d(dtype=wp.uint8), p: wp.vec3, ch: int) -> float:
+    """Sum of the three triplanes' channel ``ch`` at point ``p`` in [0, 1]^3 (the yz, xz and xy planes)."""
     return bilerp(tex, 0, p[1], p[2], ch) + bilerp(tex, 1, p[0], p[2], ch) + bilerp(tex, 2, p[0], p[1], ch)
 
 
 @wp.func
 def sigmoid(x: float) -> float:
+    """1 / (1 + e^-x)."""
     return 1.0 / (1.0 + wp.exp(-x))
 
 
 @wp.struct
 class BakedScene:
+    """One baked submodel's textures as the viewer uploads them (byte arrays), with its grid sizes and the occupied
+    box."""
     block_indices: wp.array4d(dtype=wp.uint8)
     atlas_rgb: wp.array4d(dtype=wp.uint8)
     atlas_density: wp.array4d(dtype=wp.uint8)
@@ -266,6 +281,9 @@ def baked_march(
     out_color: wp.array(dtype=wp.vec3), out_feat: wp.array(dtype=wp.vec4), out_coarse_color: wp.array(dtype=wp.vec3),
     out_coarse_feat: wp.array(dtype=wp.vec4), out_visibility: wp.array(dtype=float),
 ):
+    """One thread per ray (from ``ray0``): the viewer's fragment shader march through one baked submodel ->
+    accumulated diffuse colour (R, 3), features (R, 4), their values at the coarse exit and the remaining visibility
+    (R,)."""
     r = ray0 + wp.tid()
     o = origins[r]
     d = dirs[r]
