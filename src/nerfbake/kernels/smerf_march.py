@@ -473,10 +473,11 @@ def occupied_box(distance8: np.ndarray, voxel: float) -> tuple[list[float], list
     return ((-2.0 + cells.min(0) * voxel).tolist(), (-2.0 + (cells.max(0) + 1) * voxel).tolist())
 
 
-def march_baked(scene, origins: torch.Tensor, dirs: torch.Tensor, step_mult: float = 1.0,
+def march_baked(scene, origins: torch.Tensor, dirs: torch.Tensor, step_mult: int = 1,
                 visibility_delay: float = 0.99) -> dict[str, torch.Tensor]:
     """Per ray (submodel frame, unnormalised direction to the near plane): accumulated diffuse colour, features,
-    coarse (sparse-only) colour and features, and the remaining visibility."""
+    coarse (sparse-only) colour and features, and the remaining visibility. ``step_mult`` is the viewer's whole
+    stepMult (the kernel takes it as a float)."""
     n = origins.shape[0]
     dev = device_of(origins)
     out = {"color": torch.zeros(n, 3), "feat": torch.zeros(n, 4), "coarse_color": torch.zeros(n, 3),

@@ -26,6 +26,7 @@ from nerfbake.octree.environment import bake_environment, needs_environment
 from nerfbake.octree.io import save_tree
 from nerfbake.octree.tree import Octree, tree_from_cells
 from nerfbake.progress import progress_bar
+from nerfbake.render.sh import sh_num_coeffs
 from nerfbake.teacher.run import load_teacher
 from nerfbake.train.loop import DataParallel, step_generator
 from nerfbake.teacher.protocol import Teacher
@@ -180,7 +181,7 @@ def fill_leaves(tree: Octree, teacher: Teacher, cfg: BuildConfig, cells: np.ndar
     flat = tree.data.view(-1, tree.data_dim)
     per = max(1, cfg.chunk // m)
     nb = tree.num_basis
-    if 3 * nb != 3 * (teacher.sh_degree + 1) ** 2:
+    if 3 * nb != 3 * sh_num_coeffs(teacher.sh_degree):
         raise ValueError("tree and teacher disagree on the SH degree")
     with progress_bar("octree leaves", total=n, unit="leaf") as advance:
         for j in dp.mine(-(-n // per)):  # chunks dealt out over torchrun ranks; random points seeded per chunk
@@ -223,7 +224,7 @@ def build_octree(teacher_run: str | Path, out: str | Path, cfg: BuildConfig) -> 
     if cells.shape[0] == 0:
         raise ValueError(f"no voxel reaches weight {cfg.weight_thresh} on any training ray; lower --weight-thresh")
     del sigma, keep
-    tree = tree_from_cells(cells, depth, lo.numpy(), hi.numpy(), 3 * (teacher.sh_degree + 1) ** 2 + 1)
+    tree = tree_from_cells(cells, depth, lo.numpy(), hi.numpy(), 3 * sh_num_coeffs(teacher.sh_degree) + 1)
     fill_leaves(tree, teacher, cfg, cells)
     dp = DataParallel()
     path = Path(out)

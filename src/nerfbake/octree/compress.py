@@ -32,6 +32,7 @@ from nerfbake.octree.evaluate import ViewLoss
 from nerfbake.octree.io import COMPRESSION_KEY, env_map_arrays, half_precision, load_tree, tree_from_arrays, write_npz
 from nerfbake.octree.tree import Octree
 from nerfbake.progress import progress_bar
+from nerfbake.render.sh import sh_num_coeffs
 
 
 def median_cut(colors: np.ndarray, bits: int, min_extent: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
@@ -325,7 +326,7 @@ def compress_tree(tree_path: str | Path, out: str | Path, bits: int = 16, retain
     tree = load_tree(tree_path)
     if sh_degree is not None and not 0 <= sh_degree <= tree.sh_degree:
         raise ValueError(f"--sh-degree {sh_degree} is outside 0..{tree.sh_degree} (the degree this tree holds)")
-    nb = tree.num_basis if sh_degree is None else (sh_degree + 1) ** 2
+    nb = tree.num_basis if sh_degree is None else sh_num_coeffs(sh_degree)
     if not 0 <= retain <= nb:
         raise ValueError(f"--retain {retain} is outside 0..{nb} (the tree has {nb} SH bases)")
     q = Quantizer(tree, nb, bits, sigma_thresh, min_extent, codebook)
