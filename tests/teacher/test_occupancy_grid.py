@@ -51,3 +51,20 @@ def test_final_refresh_finds_thin_structures_the_running_estimate_lets_decay():
     grid.refresh(density, gen)
     assert grid.occupied[5].float().mean() > max(0.8, held)  # P(16 points all miss a 1/8 slab) = (7/8)^16 ~ 0.12
     assert not grid.occupied[:5].any() and not grid.occupied[6:9].any()
+
+
+def test_dilated_lookup_finds_the_cell_a_point_is_in_contracted_or_not():
+    """The octree builder skips queries where ``may_be_occupied`` (this lookup, grown by a cell) is False: on a
+    contracted grid the point must be mapped through the contraction, not linearly over the box."""
+    for contracted in (False, True):
+        grid = OccupancyGrid([0.0] * 3, [2.0] * 3, resolution=16, contracted=contracted)
+        grid.occupied.zero_()
+        p = torch.tensor([[1.7, 1.1, 0.4]])  # inside the box: contracted, it lies in the grid's middle half
+        cell = ((grid.to_grid_space(p) - grid.grid_min) / (grid.grid_max - grid.grid_min) * 16).long()[0]
+        grid.occupied[tuple(cell)] = True
+        assert grid.occupied_at(p).item()
+        cell_width = 4 / 16 if contracted else 2 / 16  # in world units: inside the box the contraction is x - 1
+        beside = p + torch.tensor([[cell_width, 0.0, 0.0]])  # the next cell along x
+        assert not grid.occupied_at(beside).item() and grid.occupied_at(beside, dilate=1).item()
+        far = torch.tensor([[0.1, 1.9, 1.9]])
+        assert not grid.occupied_at(far, dilate=1).item()

@@ -85,21 +85,6 @@ def _cell_centres(lo: torch.Tensor, hi: torch.Tensor, g: int, z0: int, z1: int) 
     return (lo + xyz * (hi - lo)).float()
 
 
-def _teacher_occupied(teacher: Teacher, pts: torch.Tensor) -> torch.Tensor:
-    """Where the teacher's occupancy grid (dilated by one cell) says there may be density; all True without one."""
-    grid = getattr(teacher, "grid", None)
-    if grid is None:
-        return torch.ones(pts.shape[0], dtype=torch.bool)
-    occ = grid.occupied.float().cpu()[None, None]
-    occ = torch.nn.functional.max_pool3d(occ, 3, stride=1, padding=1)[0, 0] > 0
-    g = occ.shape[0]
-    lo, hi = grid.box_min.cpu(), grid.box_max.cpu()
-    ijk = ((pts - lo) / (hi - lo) * g).floor().long()
-    inside = ((ijk >= 0) & (ijk < g)).all(-1)
-    ijk = ijk.clamp(0, g - 1)
-    return inside & occ[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
-
-
 def density_grid(teacher: Teacher, lo: torch.Tensor, hi: torch.Tensor, g: int, chunk: int, desc: str,
                  dp: DataParallel | None = None) -> torch.Tensor:
     """sigma at the cell centres of a g^3 grid over [lo, hi] (0 where the teacher's occupancy grid is empty); under
@@ -113,7 +98,7 @@ def density_grid(teacher: Teacher, lo: torch.Tensor, hi: torch.Tensor, g: int, c
             z0 = starts[j]
             z1 = min(g, z0 + slab)
             pts = _cell_centres(lo, hi, g, z0, z1)
-            live = _teacher_occupied(teacher, pts)
+            live = teacher.may_be_occupied(pts)
             vals = torch.zeros(pts.shape[0])
             if live.any():
                 vals[live] = query_density(teacher, pts[live], chunk)

@@ -150,6 +150,14 @@ class HashTeacher(nn.Module):
             return sigma
         return torch.where(self.grid.occupied_at(x), sigma, torch.zeros_like(sigma))
 
+    @torch.no_grad()
+    def may_be_occupied(self, x: torch.Tensor) -> torch.Tensor:
+        """Where the occupancy grid, grown by one cell, lets density be (all True on the proposal path, which keeps
+        no grid)."""
+        if self.uses_proposal:
+            return torch.ones(x.shape[0], dtype=torch.bool, device=x.device)
+        return self.grid.occupied_at(x.to(self.grid.occupied.device), dilate=1).to(x.device)
+
     def before_step(self, step: int, generator: torch.Generator) -> None:
         self.train_dt = self.dt * (self.cfg.coarse_march_scale if step < self.cfg.coarse_march_steps else 1.0)
         if not self.uses_proposal and step % self.cfg.grid_update_every == 0:
@@ -278,6 +286,10 @@ class NeRFSHTeacher(nn.Module):
         hi = torch.as_tensor(self.box.box_max, dtype=x.dtype, device=x.device)
         sigma = self.fine(x)[0]
         return torch.where(((x >= lo) & (x <= hi)).all(-1), sigma, torch.zeros_like(sigma))
+
+    def may_be_occupied(self, x: torch.Tensor) -> torch.Tensor:
+        """All True: NeRF-SH keeps no occupancy grid."""
+        return torch.ones(x.shape[0], dtype=torch.bool, device=x.device)
 
     def before_step(self, step, generator) -> None:
         pass

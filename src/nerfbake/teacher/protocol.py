@@ -32,6 +32,10 @@ class Teacher(Protocol):
     def density_at(self, x: torch.Tensor) -> torch.Tensor:
         """Points (N, 3) -> sigma (N,) as the renderer sees the scene: zero where it never samples."""
 
+    def may_be_occupied(self, x: torch.Tensor) -> torch.Tensor:
+        """Points (N, 3) -> bool (N,): False only where the teacher is known to be empty (its occupancy grid grown
+        by one cell), so a builder can skip querying there."""
+
     def render_rays(self, origins: torch.Tensor, dirs: torch.Tensor, background: torch.Tensor | None = None,
                     noise: torch.Tensor | None = None) -> dict:
         """Rays (R, 3) + (R, 3) -> ``rgb`` (R, 3), ``acc`` (R,), ``depth`` (R,) and the packed intervals ``ray_idx``,

@@ -70,14 +70,18 @@ class OccupancyGrid(nn.Module):
             return torch.ones(x.shape[0], device=x.device)
         return ((x - self.centre) / self.half).abs().amax(-1).clamp_min(1.0).square()
 
-    def occupied_at(self, x: torch.Tensor) -> torch.Tensor:
-        """True where world points x (N, 3) fall in an occupied cell (and, bounded, inside the box)."""
+    def occupied_at(self, x: torch.Tensor, dilate: int = 0) -> torch.Tensor:
+        """True where world points x (N, 3) fall in an occupied cell (and, bounded, inside the box); ``dilate``
+        grows the occupied cells by that many cells first (a margin for queries between cell centres)."""
         g = self.resolution
         lo, hi = self.grid_min, self.grid_max
         u = (self.to_grid_space(x) - lo) / (hi - lo)
         inside = ((u >= 0) & (u < 1)).all(-1)
         ijk = (u.clamp(0, 1 - 1e-6) * g).long()
-        return inside & self.occupied[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
+        occ = self.occupied
+        if dilate:
+            occ = torch.nn.functional.max_pool3d(occ.float()[None, None], 2 * dilate + 1, 1, dilate)[0, 0] > 0
+        return inside & occ[ijk[:, 0], ijk[:, 1], ijk[:, 2]]
 
     def cells_to_update(self, generator: torch.Generator) -> torch.Tensor:
         """Sorted, unique flat indices (CPU) of the cells the next update evaluates (random draws with repeats
