@@ -301,7 +301,7 @@ def cmd_distill(args) -> int:
     from nerfbake.smerf.run import config_from_file, distill_preset
 
     cfg = config_from_file(args.config) if args.config else distill_preset(args.preset, args.k or 1)
-    cfg = _override(cfg, args, ("k", "steps", "batch_patches"))
+    cfg = _override(cfg, args, ("k", "steps", "batch_patches", "downscale"))
     cfg.tensorboard = cfg.tensorboard or args.tensorboard
     distill(args.teacher, args.out, cfg, resume=args.resume)
     return 0
@@ -554,6 +554,7 @@ def build_parser() -> argparse.ArgumentParser:
     di.add_argument("--config", help="a student's config.json (or a bare distillation config) instead of --preset")
     di.add_argument("--steps", type=int)
     di.add_argument("--batch-patches", type=int, help="3x3 patches per step")
+    di.add_argument("--downscale", type=float, help="image downscale of the training photos (default: the teacher's)")
     di.add_argument("--resume", action="store_true")
     di.add_argument("--tensorboard", action="store_true")
     di.set_defaults(func=cmd_distill)

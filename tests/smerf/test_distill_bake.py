@@ -3,6 +3,7 @@ differences, a tiny distillation that learns and resumes exactly, baked assets t
 hold exactly the student's quantised values, the baked renderer agreeing with the student, and clear errors."""
 import gzip
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -105,6 +106,9 @@ def test_distillation_learns_and_resumes_to_the_same_student(tiny_teacher, tiny_
     sa, sb = load_student(a)[0], load_student(tmp_path / "b")[0]
     for name, pa in sa.state_dict().items():  # bit-identical: every step's randomness comes from (seed, step)
         assert torch.equal(pa, sb.state_dict()[name]), name
+    # --downscale: the student trains on smaller photos than its teacher, and says so for bake and eval
+    half = distill(tiny_teacher, tmp_path / "half", replace(tiny_distill_config(steps=2), downscale=2.0))
+    assert json.loads((half / "config.json").read_text())["downscale"] == 2.0
 
 
 def median_alive(sm) -> torch.Tensor:

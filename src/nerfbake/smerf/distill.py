@@ -158,7 +158,8 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
     dp = DataParallel()
     teacher, tcfg, tmeta, _ = load_teacher(Path(teacher_run))
     teacher.to(dp.device)
-    ds = load_dataset(tmeta["data"], downscale=tcfg.downscale, normalize=tcfg.normalize)
+    downscale = cfg.downscale or tcfg.downscale
+    ds = load_dataset(tmeta["data"], downscale=downscale, normalize=tcfg.normalize)
     train_idx = ds.split("train")
     if not resume and dp.is_main and run_complete(out):
         raise ValueError(f"{out}: already holds a finished student; pass --resume to continue or choose another --out")
@@ -186,7 +187,7 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
         if dp.is_main:
             console.print(f"resuming {out} at step {start}")
     meta = {"kind": "smerf-student", "distill": to_jsonable(cfg), "partition": partition.to_json(),
-            "teacher": str(Path(teacher_run).resolve()), "data": tmeta["data"], "downscale": tcfg.downscale,
+            "teacher": str(Path(teacher_run).resolve()), "data": tmeta["data"], "downscale": downscale,
             "normalize": tcfg.normalize,
             "num_submodels": partition.num_alive, "git": git_revision(), "world_size": dp.world, "complete": False}
     if dp.is_main:

@@ -42,6 +42,7 @@ class DistillConfig:
     jitter_origin: float = 0.03  # Gaussian sigma, partition-cube units (per ray)
     jitter_direction: float = 0.03  # per patch
     reassign_fraction: float = 0.2
+    downscale: float | None = None  # image downscale of the training photos (None: the teacher's)
     core_quantile: float = 0.1  # K = 1: the share of the training views' surfaces kept in the core (Partition)
     cull_alpha: tuple[float, float] = (5e-4, 5e-3)
     cull_window: tuple[float, float] = (0.4, 0.8)  # fractions of the run over which culling ramps up
