@@ -54,6 +54,10 @@ def test_partition_cube_grows_until_a_share_of_the_surfaces_lies_in_the_core():
     # an object scene, cameras all around at 4: its surfaces already lie in the core; the cameras size the cube
     ring = np.stack([4 * np.cos(np.linspace(0, 6, 30)), 4 * np.sin(np.linspace(0, 6, 30)), np.ones(30)], 1)
     assert Partition.from_cameras(ring, 1, surface_distances=np.full(50, 0.6)).scale == Partition.from_cameras(ring, 1).scale
+    # a room: cameras spread through it, its nearer surfaces within the cameras' span: the cameras size the cube
+    spread = np.random.default_rng(3).uniform(-1.5, 1.5, (40, 3))
+    walls = np.linspace(0.74, 2.5, 60)
+    assert Partition.from_cameras(spread, 1, surface_distances=walls).scale == Partition.from_cameras(spread, 1).scale
     # K > 1 is cut by the cameras alone
     assert Partition.from_cameras(cams, 2, surface_distances=surfaces).scale == Partition.from_cameras(cams, 2).scale
 

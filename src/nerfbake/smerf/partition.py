@@ -51,10 +51,12 @@ class Partition:
         centred on the cameras' bounding box so that no cells are wasted.
 
         ``surface_distances`` (M,): how far (inf-norm) from the world origin the training views' surfaces lie (at
-        the teacher's median depths; K = 1 only). The cube then grows, where needed, until at least ``core_quantile``
-        of them fall in the submodel's uncontracted core (0: the cameras alone size it). Sized by its cameras
-        alone, a forward-facing capture (fern: cameras within 0.4 of the origin, the scene 1.3 to 6 in front) put
-        every surface in the outer 7 % of the contracted shell."""
+        the teacher's median depths; K = 1 only). When even their ``core_quantile`` lies beyond the cameras' span
+        (a scene seen from a small baseline), the cube grows until that share of them falls in the submodel's
+        uncontracted core (``core_quantile`` 0: the cameras alone size it). Sized by its cameras alone, a
+        forward-facing capture (fern: cameras within 0.4 of the origin, the scene 1.3 to 6 in front) put every
+        surface in the outer 7 % of the contracted shell. Cameras around an object or among the surfaces of a room
+        keep the cameras' cube, the authors' rule."""
         if k < 1:
             raise PartitionError(f"K must be >= 1, got {k}")
         origins = np.asarray(origins, np.float64)
@@ -65,8 +67,9 @@ class Partition:
         centre = (lo + hi) / 2 if k > 1 else np.zeros(3)
         half = float(np.abs(origins - centre).max())
         if k == 1 and core_quantile > 0 and surface_distances is not None and len(surface_distances):
-            reach = float(np.quantile(surface_distances, core_quantile))  # lands on the core's face (1)
-            half = max(half, factor * (1.0 - margin) * reach)
+            reach = float(np.quantile(surface_distances, core_quantile))
+            if reach > half:  # the scene lies beyond the cameras' span: size the cube so ``reach`` meets the core's face
+                half = factor * (1.0 - margin) * reach
         scale = (1.0 - margin) / half if half > 0 else 1.0
         part = cls(k, centre, scale, [-1] * k ** 3, factor)
         alive = sorted(set(part.cell_index(part.normalize(origins)).tolist()))
