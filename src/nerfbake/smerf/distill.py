@@ -170,7 +170,8 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
         partition = Partition.from_json(json.loads((out / CONFIG).read_text())["partition"])
     else:
         origins = np.stack([ds.frames[i].camera.origin for i in train_idx])
-        reach = surface_distances(teacher, store, bg, dp.device, cfg.seed) if cfg.k == 1 and cfg.core_quantile > 0 else None
+        sized_by_surfaces = cfg.k == 1 and cfg.core_quantile > 0
+        reach = surface_distances(teacher, store, bg, dp.device, cfg.seed) if sized_by_surfaces else None
         partition = Partition.from_cameras(origins, cfg.k, surface_distances=reach, core_quantile=cfg.core_quantile)
     torch.manual_seed(cfg.seed)
     student = Student(cfg.student, partition, cfg.seed).to(dp.device)
