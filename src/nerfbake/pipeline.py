@@ -385,8 +385,7 @@ def run_pipeline(cfg: PipelineConfig, stop_after: str | None = None, log: Callab
             return {}
     results = collect_results(run)
     if dp.is_main:
-        write_json_atomic(run / "results.json", results)
-        write_report(run, results)
+        write_report(run, results)  # with results.json
     dp.barrier()
     return results
 

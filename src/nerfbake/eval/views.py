@@ -12,7 +12,7 @@ from typing import Callable
 
 import numpy as np
 
-from nerfbake.atomic import atomic_folder, check_output_folder, write_image
+from nerfbake.atomic import atomic_folder, write_image
 from nerfbake.data.dataset import Dataset
 from nerfbake.data.images import area_downscale
 from nerfbake.eval.metrics import image_metrics
@@ -31,7 +31,6 @@ def render_views_to_folder(render: Callable, cameras: list, out: str | Path, ove
     an (H, W, 3) image in [0, 1], or a dict with ``rgb`` and optionally ``depth`` (H, W; saved as
     ``NNNN_depth.npy``); ``extra_files`` are written beside them (name -> text)."""
     out = Path(out)
-    check_output_folder(out, overwrite, "render")
     names = [f"{i:04d}.png" for i in range(len(cameras))]
     with atomic_folder(out, overwrite, "render") as tmp, progress_bar(desc, len(cameras), unit="view") as advance:
         for name, cam in zip(names, cameras):

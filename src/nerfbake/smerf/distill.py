@@ -45,17 +45,8 @@ from nerfbake.smerf.run import CHECKPOINT, CONFIG, DistillConfig
 from nerfbake.smerf.student import Student
 from nerfbake.teacher.protocol import Teacher
 from nerfbake.teacher.run import load_teacher
-from nerfbake.train.loop import (
-    DataParallel,
-    finish_run,
-    git_revision,
-    load_checkpoint,
-    log_linear_lr,
-    run_complete,
-    run_steps,
-    to_jsonable,
-    write_json_atomic,
-)
+from nerfbake.train.loop import (DataParallel, finish_run, git_revision, load_checkpoint, log_linear_lr, run_complete,
+                                 run_steps, to_jsonable, write_json_atomic)
 
 
 def charbonnier(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:

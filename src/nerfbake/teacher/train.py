@@ -18,19 +18,8 @@ from nerfbake.teacher.evaluate import render_camera
 from nerfbake.teacher.models import SceneBox, build_teacher
 from nerfbake.teacher.presets import TeacherTrainConfig
 from nerfbake.teacher.run import CHECKPOINT, CONFIG
-from nerfbake.train.loop import (
-    DataParallel,
-    finish_run,
-    git_revision,
-    load_checkpoint,
-    log_linear_lr,
-    run_complete,
-    run_steps,
-    step_decay_lr,
-    step_generator,
-    to_jsonable,
-    write_json_atomic,
-)
+from nerfbake.train.loop import (DataParallel, finish_run, git_revision, load_checkpoint, log_linear_lr, run_complete,
+                                 run_steps, step_decay_lr, step_generator, to_jsonable, write_json_atomic)
 
 
 def scene_box(ds: Dataset) -> SceneBox:
