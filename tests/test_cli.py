@@ -60,3 +60,26 @@ def test_every_command_keeps_its_recorded_flags(capsys):
         text = capsys.readouterr().out
         missing = [f for f in flags if f not in text]
         assert missing == [], f"`nerfbake {command} --help` does not list {missing}"
+
+
+def test_a_command_runs_from_python_as_from_the_command_line(fern, capsys):
+    """The command dataclasses are the CLI: the same options give the same result without a command line."""
+    from nerfbake.commands import DataInfo
+
+    assert main(["data", "info", str(fern), "--json", "--downscale", "2"]) == 0
+    assert json.loads(capsys.readouterr().out) == DataInfo(path=str(fern), downscale=2.0).run()
+
+
+def test_preset_override_flags_come_from_the_stage_configs(capsys):
+    """``--grid`` is BuildConfig.grid: its help is the field's, and a flag not given leaves the preset's value."""
+    from dataclasses import fields
+
+    from nerfbake.cli import build_parser, command_from
+    from nerfbake.octree.build import BuildConfig
+
+    with pytest.raises(SystemExit):
+        main(["octree", "build", "--help"])
+    grid_help = next(f for f in fields(BuildConfig) if f.name == "grid").metadata["help"]
+    assert " ".join(grid_help.split()) in " ".join(capsys.readouterr().out.split())
+    argv = ["octree", "build", "--teacher", "t", "--out", "o.npz", "--grid", "64", "--no-autoscale"]
+    assert command_from(build_parser(argv).parse_args(argv)).overrides == {"grid": 64, "autoscale": False}

@@ -12,6 +12,9 @@ import numpy as np
 from nerfbake.data.errors import DatasetError
 
 NORMALIZATIONS = ("auto", "forward-facing", "object-centric", "none")  # the --normalize choices; auto: from the cameras
+NORMALIZE_HELP = ("scene normalisation: auto decides from the cameras (forward-facing or 360/object-centric; nerfbake "
+                  "data info says which and why); the others override it (not for Blender scenes)")
+TREE_NORMALIZE_HELP = "the --normalize the tree's teacher was trained with (the tree lives in its frame)"
 
 
 @dataclass

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -36,18 +36,24 @@ from nerfbake.teacher.protocol import Teacher
 class BuildConfig:
     """Settings of the tree extraction (PlenOctrees section 4.2): the dense grid, the weight mask over the training
     rays, the box fitted to what the views see, and the samples averaged into each leaf's SH."""
-    grid: int = 512  # dense grid side G = 2^(depth+1); leaves at the finest depth have side box/G
-    weight_thresh: float = 0.001  # the authors' code default (configs keep it)
-    samples_per_leaf: int = 256
-    autoscale: bool = True
+    # dense grid side G = 2^(depth+1); leaves at the finest depth have side box/G
+    grid: int = field(default=512, metadata={"help": "dense grid side (power of two; 512 in the paper)"})
+    weight_thresh: float = field(default=0.001, metadata={  # the authors' code default (configs keep it)
+        "help": "keep voxels with this compositing weight on some training ray"})
+    samples_per_leaf: int = field(default=256, metadata={"help": "teacher samples averaged per leaf (256 paper, 8 fast)"})
+    autoscale: bool = field(default=True, metadata={"flag": "--no-autoscale",
+                                                    "help": "keep the teacher's box instead of fitting one"})
     autoscale_grid: int = 256
     autoscale_weight: float = 0.05  # the box must hold what views clearly see; fainter floaters outside it are cut
-    ray_stride: int = 1  # use every n-th pixel row and column of the training views for the weight mask
+    ray_stride: int = field(default=1, metadata={
+        "help": "use every n-th pixel row/column of the training views for the weight mask"})
     seed: int = 0
     chunk: int = 1 << 18  # points per teacher query
     # Rows of the environment map (2x as many columns) baked for teachers that see past their box (unbounded
     # scenes, learned backgrounds: octree/environment.py); 0 draws the constant background there instead.
-    env_map_height: int = 256
+    env_map_height: int = field(default=256, metadata={"help": (
+        "rows of the environment map baked for what lies beyond the box of an unbounded scene or a learned "
+        "background (columns: twice that; 0: constant background)")})
 
     @property
     def depth(self) -> int:

@@ -8,12 +8,13 @@ the best tree is kept and training stops at the first drop unless ``continue_on_
 from __future__ import annotations
 
 import time
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from nerfbake.data.normalization import NORMALIZATIONS, TREE_NORMALIZE_HELP
 from nerfbake.data.formats import load_dataset
 from nerfbake.data.rays import camera_rays
 from nerfbake.kernels.octree import backward_buffers, render_backward, render_forward
@@ -28,14 +29,15 @@ from nerfbake.train.loop import default_device
 class OptimizeConfig:
     """Fine-tuning settings: epochs of one SGD step per training image, the learning rate, how often and on how many
     views validation runs, and whether to stop at the first drop."""
-    epochs: int = 80
-    lr: float = 1e7
-    val_every: int = 2
+    epochs: int = field(default=80, metadata={"help": "passes over the training images, one SGD step per image"})
+    lr: float = field(default=1e7, metadata={"help": "SGD learning rate (the paper's 1e7)"})
+    val_every: int = field(default=2, metadata={"help": "validate every N epochs"})
     val_views: int = 10  # evenly spread views of the validation split
-    continue_on_decrease: bool = False
+    continue_on_decrease: bool = field(default=False, metadata={"help": "do not stop when validation PSNR drops"})
     seed: int = 0
-    downscale: float = 1.0
-    normalize: str = "auto"  # must be the teacher's: the tree lives in its normalised frame
+    downscale: float = field(default=1.0, metadata={"help": "image downscale of the training photos"})
+    # must be the teacher's: the tree lives in its normalised frame
+    normalize: str = field(default="auto", metadata={"choices": NORMALIZATIONS, "help": TREE_NORMALIZE_HELP})
 
 
 def optimize_preset(name: str) -> OptimizeConfig:

@@ -22,9 +22,9 @@ class DistillConfig:
     """Everything distillation depends on: K, steps and batch, learning rates, loss weights and schedules, culling,
     and the student's own sizes (``student``)."""
     preset: str = "cpu-small"
-    k: int = 1
-    steps: int = 5000
-    batch_patches: int = 512  # 3x3 patches per step (4608 rays)
+    k: int = dc_field(default=1, metadata={"help": "submodels per axis (default 1)"})
+    steps: int = dc_field(default=5000, metadata={"help": "distillation steps (default: the preset's)"})
+    batch_patches: int = dc_field(default=512, metadata={"help": "3x3 patches per step (512: 4608 rays)"})
     lr_grid: float = 5e-2
     lr_grid_final: float = 2e-3
     lr_mlp: float = 5e-3
@@ -42,7 +42,8 @@ class DistillConfig:
     jitter_origin: float = 0.03  # Gaussian sigma, partition-cube units (per ray)
     jitter_direction: float = 0.03  # per patch
     reassign_fraction: float = 0.2
-    downscale: float | None = None  # image downscale of the training photos (None: the teacher's)
+    downscale: float | None = dc_field(default=None, metadata={
+        "help": "image downscale of the training photos (default: the teacher's)"})
     core_quantile: float = 0.1  # K = 1: the share of the training views' surfaces kept in the core (Partition)
     cull_alpha: tuple[float, float] = (5e-4, 5e-3)
     cull_window: tuple[float, float] = (0.4, 0.8)  # fractions of the run over which culling ramps up

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field as dc_field
 
+from nerfbake.data.normalization import NORMALIZATIONS, NORMALIZE_HELP
 from nerfbake.fields.hash_sh import HashSHConfig
 from nerfbake.fields.nerf_sh import NeRFSHConfig
 from nerfbake.teacher.models import HashTeacherConfig, NeRFSHTeacherConfig
@@ -14,20 +15,23 @@ from nerfbake.teacher.models import HashTeacherConfig, NeRFSHTeacherConfig
 class TeacherTrainConfig:
     field: str = "hash"
     preset: str = "cpu-small"
-    steps: int = 3000
-    batch_rays: int = 4096
+    steps: int = dc_field(default=3000, metadata={"help": "training steps (default: the preset's)"})
+    batch_rays: int = dc_field(default=4096, metadata={"help": "rays per step"})
     lr: float = 1e-2
     lr_final: float = 3e-4  # log-linear schedule only
     lr_schedule: str = "log-linear"  # or "step": constant, x0.33 at 50/75/90% of the steps
     warmup_steps: int = 100
     weight_decay: float = 1e-6
     seed: int = 0
-    downscale: float = 1.0
-    normalize: str = "auto"  # the scene normalisation (data/formats NORMALIZATIONS); auto decides from the cameras
+    downscale: float = dc_field(default=1.0, metadata={"help": "image downscale of the training photos"})
+    # the scene normalisation (data/normalization NORMALIZATIONS); auto decides from the cameras
+    normalize: str = dc_field(default="auto", metadata={"choices": NORMALIZATIONS, "help": NORMALIZE_HELP})
     # Per-image exposure / white-balance corrections (teacher/appearance.py): "affine", "auto" (affine for photographs,
     # none for RGBA renders) or "none". Off by default: scored at the mean appearance, held-out views lost 0.64 dB
     # with them on the phone clip (600 steps: 22.13 vs 22.77) and 0.04 dB on fern.
-    appearance: str = "none"
+    appearance: str = dc_field(default="none", metadata={"choices": ("auto", "affine", "none"), "help": (
+        "per-image exposure/white-balance corrections (default none; auto: affine for photographs, none for RGBA "
+        "renders); held-out views are scored at the mean appearance")})
     # Each training ray's prediction is composited on a random colour (RGBA targets on the same one): the field must
     # be opaque wherever the photos are. False: white.
     random_background: bool = True
