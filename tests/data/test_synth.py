@@ -55,10 +55,11 @@ def test_deterministic_by_seed(objects, tmp_path):
     assert np.abs(a - b).max() < 2 / 255
 
 
-def test_rooms_cameras_inside_both_rooms(tmp_path):
+@pytest.mark.parametrize("scene,views", [("rooms", 8), ("house", 28)])
+def test_indoor_cameras_inside_every_room(tmp_path, scene, views):
     from nerfbake.data.synth import SynthConfig, render_dataset
 
-    out = render_dataset(SynthConfig("rooms", 48, 36, views=8, spp=4, seed=1), tmp_path / "rooms")
+    out = render_dataset(SynthConfig(scene, 48, 36, views=views, spp=4, seed=1), tmp_path / scene)
     meta = json.loads((out / "scene_meta.json").read_text())
     ds = load_dataset(out)
     rooms = {name: (np.array(b["min"]), np.array(b["max"])) for name, b in meta["rooms"].items()}
@@ -71,15 +72,32 @@ def test_rooms_cameras_inside_both_rooms(tmp_path):
             assert np.linalg.norm(f.camera.origin - obj["center"]) > obj["radius"] + 0.2
         centre = np.mean(rooms[inside[0]], 0)  # facing into the room, not at the wall behind
         assert np.dot(-f.camera.c2w[:3, 2][:2], (centre - f.camera.origin)[:2]) > 0
-    assert seen == {"A", "B"}
+    assert seen == set(rooms)
     for i in range(len(ds.frames)):
         img = ds.image(i)
         assert img.shape == (36, 48, 3) and img.mean() > 0.05  # lit, opaque
+    test = [ds.frames[i].camera.origin for i in ds.split("test")]  # the held-out walk goes room after room
+    assert [next(n for n, (lo, hi) in rooms.items() if (o > lo).all() and (o < hi).all()) for o in test] == \
+        [list(rooms)[i % len(rooms)] for i in range(len(test))]
+
+
+def test_house_is_large_enough_for_three_cubed_submodels(tmp_path):
+    """Issue 22's large scene: seven rooms on two storeys, so a K = 3 partition of its cameras has more alive
+    submodels (here 15 of 27) than the 9 that cameras on one floor could make alive."""
+    from nerfbake.data.synth import SynthConfig, render_dataset
+    from nerfbake.smerf.partition import Partition
+
+    out = render_dataset(SynthConfig("house", 16, 12, views=28, spp=1), tmp_path / "house")
+    meta = json.loads((out / "scene_meta.json").read_text())
+    assert len(meta["rooms"]) >= 5 and {b["min"][2] for b in meta["rooms"].values()} == {0.0, 1.5}
+    origins = np.array([f.camera.origin for f in load_dataset(out).training_frames()])
+    alive = [Partition.from_cameras(origins, k).num_alive for k in (1, 2, 3)]
+    assert alive[0] == 1 and alive[1] >= 6 and alive[2] >= 10, alive
 
 
 def test_synth_list_and_bad_scene(tmp_path):
     proc = subprocess.run([sys.executable, "-m", "nerfbake", "synth", "--list"], capture_output=True, text=True)
-    assert "objects" in proc.stdout and "rooms" in proc.stdout
+    assert "objects" in proc.stdout and "rooms" in proc.stdout and "house" in proc.stdout
     proc = subprocess.run([sys.executable, "-m", "nerfbake", "synth", "--scene", "castle", "--out", str(tmp_path / "x")],
                           capture_output=True, text=True)
     assert proc.returncode == 2 and "unknown synthetic scene 'castle'" in proc.stderr

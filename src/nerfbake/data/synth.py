@@ -11,6 +11,10 @@ Scenes are deterministic by seed and Z-up like the NeRF-synthetic scenes:
   featureless or mirror-like.
 * ``rooms`` — indoor, opaque: two rooms joined by a doorway, each with its own ceiling light and objects,
   cameras inside both rooms (what SMERF's camera partitioning is for).
+* ``house`` — the large indoor scene: two storeys of 6 x 4 units, five rooms off a corridor downstairs and two
+  bedrooms upstairs, joined by doors and an open stairwell in the slab, each room with its own light, colours and
+  object; cameras in all seven rooms. Cameras on two storeys span the partition cube's height too, so K = 3 gives
+  more alive submodels than the 3 x 3 a single floor could.
 
 ``scene_meta.json`` beside the transforms records what is where (object centres, radii, room boxes), so
 tests can check the geometry of the generated views.
@@ -31,7 +35,9 @@ SCENES = {
     "objects": "object-centric RGBA scene: glossy + rough-metal spheres and a cube under an environment light",
     "textured": "the objects scene with non-repeating noise textures (feature-rich, for structure from motion)",
     "rooms": "two connected rooms with cameras inside both (indoor, opaque, for partitioning)",
+    "house": "seven rooms on two storeys, doors, a corridor and a stairwell; cameras in every room (large, for K = 3)",
 }
+INDOOR = ("rooms", "house")  # cameras inside the scene: opaque RGB, a wide lens, no object bounds
 
 
 @dataclass
@@ -52,7 +58,7 @@ class SynthConfig:
     @property
     def fov(self) -> float:
         """Indoors a 40-degree camera 1 to 1.5 units from a wall sees little but the wall."""
-        return self.fov_deg if self.fov_deg is not None else (75.0 if self.scene == "rooms" else 40.0)
+        return self.fov_deg if self.fov_deg is not None else (75.0 if self.scene in INDOOR else 40.0)
 
 
 def set_variant() -> str:
@@ -172,6 +178,114 @@ def _textured_scene(mi, seed: int) -> tuple[dict, dict]:
     return scene, meta
 
 
+def _diffuse(rgb) -> dict:
+    return {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": rgb}}}
+
+
+def _rect(mi, center, size, normal_axis, bsdf) -> dict:
+    """A rectangle spanning ``size`` (its two in-plane sides: (y, z) for a normal along x, (x, z) along y, (x, y)
+    along z) centred at ``center``."""
+    t = mi.ScalarTransform4f().translate(center)
+    if normal_axis == "x":
+        t = t.rotate([0, 1, 0], 90)
+    elif normal_axis == "y":
+        t = t.rotate([1, 0, 0], 90)
+    return {"type": "rectangle", "to_world": t.scale([size[0] / 2, size[1] / 2, 1]), "bsdf": bsdf}
+
+
+def _checker(mi, rgb0, rgb1, repeats) -> dict:
+    return {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": {
+        "type": "checkerboard", "color0": {"type": "rgb", "value": rgb0}, "color1": {"type": "rgb", "value": rgb1},
+        "to_uv": mi.ScalarTransform4f().scale([repeats[0], repeats[1], 1])}}}
+
+
+def _ceiling_light(mi, x, y, z, half, radiance) -> dict:
+    return {"type": "rectangle", "to_world": mi.ScalarTransform4f().translate([x, y, z - 0.01]).rotate([1, 0, 0], 180)
+            .scale([half, half, 1]), "emitter": {"type": "area", "radiance": {"type": "rgb", "value": radiance}}}
+
+
+def _wall(mi, axis: str, coord: float, span, heights, doors, rgb) -> dict[str, dict]:
+    """A wall in the plane ``axis = coord`` over ``span`` (along y for an x wall, x for a y wall) between
+    ``heights`` (z0, z1), cut by ``doors`` ((centre, width) along the span, 1 unit high from z0): the pieces
+    between the doors and a lintel over each."""
+    (a, b), (z0, z1), bsdf = span, heights, _diffuse(rgb)
+    cuts = [a] + [v for c, w in sorted(doors) for v in (c - w / 2, c + w / 2)] + [b]
+    pieces = {}
+
+    def piece(lo, hi, zlo, zhi, name):
+        mid = [(lo + hi) / 2, (zlo + zhi) / 2]
+        center = [coord, mid[0], mid[1]] if axis == "x" else [mid[0], coord, mid[1]]
+        size = [zhi - zlo, hi - lo] if axis == "x" else [hi - lo, zhi - zlo]
+        pieces[name] = _rect(mi, center, size, axis, bsdf)
+
+    for i in range(0, len(cuts), 2):
+        if cuts[i + 1] - cuts[i] > 1e-6:
+            piece(cuts[i], cuts[i + 1], z0, z1, f"piece{i // 2}")
+    for j, (c, w) in enumerate(doors):
+        piece(c - w / 2, c + w / 2, z0 + 1.0, z1, f"lintel{j}")
+    return pieces
+
+
+def _house_scene(mi, seed: int) -> tuple[dict, dict]:
+    H = 1.5  # storey height; the slab between the storeys is at z = H
+    rooms = {  # the walk of the held-out cameras goes through them in this order
+        "hall": ([-3.0, -0.5, 0.0], [3.0, 0.5, H]), "kitchen": ([-3.0, 0.5, 0.0], [0.0, 2.0, H]),
+        "living": ([0.0, 0.5, 0.0], [3.0, 2.0, H]), "bath": ([0.0, -2.0, 0.0], [3.0, -0.5, H]),
+        "study": ([-3.0, -2.0, 0.0], [0.0, -0.5, H]), "bed_west": ([-3.0, -2.0, H], [0.0, 2.0, 2 * H]),
+        "bed_east": ([0.0, -2.0, H], [3.0, 2.0, 2 * H])}
+    objects = {  # name: (kind, centre, size, bsdf)
+        "hall_cube": ("cube", [-2.2, 0.0, 0.15], 0.15, _diffuse([0.2, 0.3, 0.7])),
+        "kitchen_sphere": ("sphere", [-2.2, 1.5, 0.3], 0.3, {"type": "roughplastic", "alpha": 0.1, "diffuse_reflectance":
+                                                             {"type": "rgb", "value": [0.8, 0.6, 0.1]}}),
+        "living_cube": ("cube", [2.2, 1.4, 0.25], 0.25, _diffuse([0.6, 0.15, 0.2])),
+        "bath_sphere": ("sphere", [2.3, -1.5, 0.3], 0.3, {"type": "roughconductor", "material": "Al", "alpha": 0.2}),
+        "study_cube": ("cube", [-1.0, -1.5, 0.3], 0.3, _diffuse([0.15, 0.5, 0.3])),
+        "bed_west_cube": ("cube", [-2.3, 1.2, H + 0.2], 0.2, _diffuse([0.7, 0.7, 0.2])),
+        "bed_east_sphere": ("sphere", [1.2, -1.3, H + 0.35], 0.35, {"type": "roughplastic", "alpha": 0.05,
+                                                                    "diffuse_reflectance": {"type": "rgb", "value": [0.1, 0.2, 0.6]}}),
+    }
+    hole = ([2.0, -0.5], [3.0, 0.5])  # the stairwell: an open square in the slab over the hall's east end
+    meta = {"up": [0, 0, 1], "rooms": {n: {"min": lo, "max": hi} for n, (lo, hi) in rooms.items()},
+            "stairwell": {"min": hole[0], "max": hole[1], "z": H},
+            "objects": {n: {"center": c, "radius": r * (math.sqrt(3) if k == "cube" else 1.0)}
+                        for n, (k, c, r, _) in objects.items()}}
+    scene = {"type": "scene", "integrator": {"type": "path", "max_depth": 5},
+             "floor": _rect(mi, [0, 0, 0], [6, 4], "z", _checker(mi, [0.7, 0.7, 0.65], [0.3, 0.25, 0.2], (12, 8))),
+             "roof": _rect(mi, [0, 0, 2 * H], [6, 4], "z", _diffuse([0.85, 0.85, 0.8]))}
+    # The slab: a ceiling below and a floor above, each four rectangles around the stairwell.
+    (hx0, hy0), (hx1, hy1) = hole
+    for side, (x0, x1, y0, y1) in {"w": (-3, hx0, -2, 2), "e": (hx1, 3, -2, 2), "s": (hx0, hx1, -2, hy0),
+                                   "n": (hx0, hx1, hy1, 2)}.items():
+        if x1 - x0 > 1e-6 and y1 - y0 > 1e-6:
+            centre, size = [(x0 + x1) / 2, (y0 + y1) / 2], [x1 - x0, y1 - y0]
+            scene[f"ceiling_{side}"] = _rect(mi, [*centre, H - 0.002], size, "z", _diffuse([0.8, 0.8, 0.78]))
+            scene[f"upper_floor_{side}"] = _rect(mi, [*centre, H + 0.002], size, "z",
+                                                 _checker(mi, [0.55, 0.35, 0.2], [0.4, 0.25, 0.15], (size[0] * 3, size[1] * 3)))
+    walls = [  # axis, coordinate, span, heights, doors, colour
+        ("x", -3.0, (-2, 2), (0, H), [], [0.3, 0.45, 0.75]), ("x", 3.0, (-2, 2), (0, H), [], [0.8, 0.55, 0.3]),
+        ("y", -2.0, (-3, 3), (0, H), [], [0.55, 0.7, 0.85]), ("y", 2.0, (-3, 3), (0, H), [], [0.35, 0.6, 0.45]),
+        ("y", 0.5, (-3, 3), (0, H), [(-1.5, 0.6), (1.5, 0.6)], [0.85, 0.75, 0.5]),
+        ("y", -0.5, (-3, 3), (0, H), [(-1.5, 0.6), (1.5, 0.6)], [0.75, 0.4, 0.45]),
+        ("x", 0.0, (0.5, 2), (0, H), [(1.25, 0.5)], [0.85, 0.85, 0.8]), ("x", 0.0, (-2, -0.5), (0, H), [], [0.6, 0.5, 0.7]),
+        ("x", -3.0, (-2, 2), (H, 2 * H), [], [0.7, 0.75, 0.5]), ("x", 3.0, (-2, 2), (H, 2 * H), [], [0.45, 0.3, 0.6]),
+        ("y", -2.0, (-3, 3), (H, 2 * H), [], [0.9, 0.6, 0.55]), ("y", 2.0, (-3, 3), (H, 2 * H), [], [0.4, 0.65, 0.7]),
+        ("x", 0.0, (-2, 2), (H, 2 * H), [(0.0, 0.6)], [0.8, 0.8, 0.6])]
+    for i, (axis, coord, span, heights, doors, rgb) in enumerate(walls):
+        for name, shape in _wall(mi, axis, coord, span, heights, doors, rgb).items():
+            scene[f"wall{i}_{name}"] = shape
+    tints = [[3.0, 2.85, 2.7], [2.7, 2.7, 3.2], [3.1, 2.9, 2.5]]
+    for i, (name, (lo, hi)) in enumerate(rooms.items()):
+        x, y = (lo[0] + hi[0]) / 2, (lo[1] + hi[1]) / 2
+        if name == "hall":
+            x = -0.5  # not over the stairwell
+        scene[f"light_{name}"] = _ceiling_light(mi, x, y, hi[2], 0.3 if name == "hall" else 0.45, tints[i % 3])
+    for name, (kind, centre, size, bsdf) in objects.items():
+        scene[name] = ({"type": "sphere", "center": centre, "radius": size, "bsdf": bsdf} if kind == "sphere" else
+                       {"type": "cube", "to_world": mi.ScalarTransform4f().translate(centre).rotate([0, 0, 1], 25)
+                        .scale(size), "bsdf": bsdf})
+    return scene, meta
+
+
 def _rooms_scene(mi, seed: int) -> tuple[dict, dict]:
     T = mi.ScalarTransform4f
     H = 1.5
@@ -182,21 +296,11 @@ def _rooms_scene(mi, seed: int) -> tuple[dict, dict]:
         "objects": {"sphere_A": {"center": [-1.3, 0.4, 0.3], "radius": 0.3}, "sphere_B": {"center": [1.2, -0.4, 0.3], "radius": 0.3}},
     }
 
-    def diffuse(rgb):
-        return {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": rgb}}}
-
     def rect(center, size, normal_axis, bsdf):
-        # A rectangle spanning 'size' (2 dims) centred at 'center' with its normal along normal_axis.
-        t = T().translate(center)
-        if normal_axis == "x":
-            t = t.rotate([0, 1, 0], 90)
-        elif normal_axis == "y":
-            t = t.rotate([1, 0, 0], 90)
-        return {"type": "rectangle", "to_world": t.scale([size[0] / 2, size[1] / 2, 1]), "bsdf": bsdf}
+        return _rect(mi, center, size, normal_axis, bsdf)
 
-    floor = {"type": "twosided", "bsdf": {"type": "diffuse", "reflectance": {"type": "checkerboard",
-             "color0": {"type": "rgb", "value": [0.7, 0.7, 0.65]}, "color1": {"type": "rgb", "value": [0.3, 0.25, 0.2]},
-             "to_uv": T().scale([8, 4, 1])}}}
+    diffuse = _diffuse
+    floor = _checker(mi, [0.7, 0.7, 0.65], [0.3, 0.25, 0.2], (8, 4))
     scene = {
         "type": "scene",
         "integrator": {"type": "path", "max_depth": 5},
@@ -212,10 +316,8 @@ def _rooms_scene(mi, seed: int) -> tuple[dict, dict]:
         "divider_left": rect([0, -0.65, H / 2], [H, 0.7], "x", diffuse([0.85, 0.85, 0.8])),
         "divider_right": rect([0, 0.65, H / 2], [H, 0.7], "x", diffuse([0.85, 0.85, 0.8])),
         "divider_top": rect([0, 0, 1.25], [0.5, 0.6], "x", diffuse([0.85, 0.85, 0.8])),
-        "light_A": {"type": "rectangle", "to_world": T().translate([-1, 0, H - 0.01]).rotate([1, 0, 0], 180).scale([0.6, 0.6, 1]),
-                    "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [3.0, 2.85, 2.7]}}},
-        "light_B": {"type": "rectangle", "to_world": T().translate([1, 0, H - 0.01]).rotate([1, 0, 0], 180).scale([0.6, 0.6, 1]),
-                    "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [2.7, 2.7, 3.2]}}},
+        "light_A": _ceiling_light(mi, -1, 0, H, 0.6, [3.0, 2.85, 2.7]),
+        "light_B": _ceiling_light(mi, 1, 0, H, 0.6, [2.7, 2.7, 3.2]),
         "sphere_A": {"type": "sphere", "center": meta["objects"]["sphere_A"]["center"], "radius": 0.3,
                      "bsdf": {"type": "roughplastic", "alpha": 0.08, "diffuse_reflectance": {"type": "rgb", "value": [0.1, 0.5, 0.15]}}},
         "sphere_B": {"type": "sphere", "center": meta["objects"]["sphere_B"]["center"], "radius": 0.3,
@@ -239,7 +341,8 @@ def camera_poses(cfg: SynthConfig, meta: dict, count: int, rng: np.random.Genera
             eye = [r * math.cos(el) * math.cos(az), r * math.cos(el) * math.sin(az), r * math.sin(el)]
             poses.append(look_at(eye, meta["camera_target"]))
         else:
-            poses.append(look_at(*room_view(meta, ("A", "B")[i % 2], rng)))
+            rooms = list(meta["rooms"])  # a walk through the rooms in their order, room after room
+            poses.append(look_at(*room_view(meta, rooms[i % len(rooms)], rng)))
     return poses
 
 
@@ -252,7 +355,7 @@ def room_view(meta: dict, room: str, rng: np.random.Generator) -> tuple[np.ndarr
     centre = (np.array(box["min"]) + np.array(box["max"])) / 2
     while True:
         eye = rng.uniform(lo, hi)
-        eye[2] = rng.uniform(0.5, 1.0)
+        eye[2] = box["min"][2] + rng.uniform(0.5, 1.0)  # eye height above the room's floor
         if all(np.linalg.norm(eye - np.array(o["center"])) > o["radius"] + 0.2 for o in meta["objects"].values()):
             break
     yaw = math.atan2(centre[1] - eye[1], centre[0] - eye[0]) + rng.uniform(-1.0, 1.0)
@@ -275,13 +378,13 @@ def render_dataset(cfg: SynthConfig, out: Path, progress=None, overwrite: bool =
     if min(cfg.width, cfg.height, cfg.views, cfg.spp) <= 0:
         raise ValueError("width, height, views and spp must be positive")
     variant = set_variant()
-    build = {"objects": _objects_scene, "textured": _textured_scene, "rooms": _rooms_scene}[cfg.scene]
+    build = {"objects": _objects_scene, "textured": _textured_scene, "rooms": _rooms_scene, "house": _house_scene}[cfg.scene]
     scene_dict, meta = build(mi, cfg.seed)
     fov_x = cfg.fov if cfg.width >= cfg.height else math.degrees(2 * math.atan(math.tan(math.radians(cfg.fov) / 2) * cfg.width / cfg.height))
     scene_dict["sensor"] = {
         "type": "perspective", "fov": fov_x, "fov_axis": "x",
         "film": {"type": "hdrfilm", "width": cfg.width, "height": cfg.height, "rfilter": {"type": "gaussian"},
-                 "pixel_format": "rgb" if cfg.scene == "rooms" else "rgba"},
+                 "pixel_format": "rgb" if cfg.scene in INDOOR else "rgba"},
         "sampler": {"type": "independent", "sample_count": cfg.spp},
     }
     scene = mi.load_dict(scene_dict)
@@ -315,7 +418,7 @@ def render_dataset(cfg: SynthConfig, out: Path, progress=None, overwrite: bool =
                 if progress is not None:
                     progress(done, total)
             header = {"camera_angle_x": math.radians(fov_x)}
-            if cfg.scene == "rooms":  # indoors: cameras sit inside the scene, so NeRF's object bounds do not apply
+            if cfg.scene in INDOOR:  # indoors: cameras sit inside the scene, so NeRF's object bounds do not apply
                 lo = np.min([r["min"] for r in meta["rooms"].values()], 0) - 0.05
                 hi = np.max([r["max"] for r in meta["rooms"].values()], 0) + 0.05
                 header.update(near=0.05, far=float(np.linalg.norm(hi - lo)), aabb=[lo.tolist(), hi.tolist()])
