@@ -1,0 +1,62 @@
+"""``nerfbake export``: a tree (or a teacher, through a tree built from it) -> a splat file and its frame record."""
+from __future__ import annotations
+
+import tempfile
+import time
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+
+from nerfbake.atomic import check_output_file, write_json
+from nerfbake.data.formats import load_dataset
+from nerfbake.octree.build import build_octree, build_preset
+from nerfbake.octree.io import load_tree
+from nerfbake.splats.from_tree import gaussians_from_tree
+from nerfbake.splats.io import FORMATS, SplatFileError, write_splats
+from nerfbake.teacher.run import load_teacher
+
+
+def input_frame(data: str | None, normalize: str) -> dict:
+    """How the splats' coordinates (the teacher's normalised frame) map back to the input photos' coordinates: the
+    dataset's normalisation and the 4x4 matrix ``to_input_frame`` (p_input = M @ [p, 1]); without ``data``, a
+    note that the frame is the normalised one."""
+    if data is None:
+        return {"frame": "the tree's world frame (the teacher's normalised frame); pass --data to record the "
+                         "transform to the photos' frame", "to_input_frame": np.eye(4).tolist()}
+    norm = load_dataset(data, normalize=normalize).normalization
+    rotation, translation = norm.transform[:3, :3], norm.transform[:3, 3]
+    back = np.eye(4)
+    back[:3, :3] = rotation.T / norm.scale
+    back[:3, 3] = -rotation.T @ translation
+    return {"frame": f"normalised by {norm.method} ({data})", "normalization": norm.to_json(),
+            "to_input_frame": back.tolist()}
+
+
+def export_splats(out: str | Path, fmt: str, tree: str | Path | None = None, teacher: str | Path | None = None,
+                  sh_degree: int | None = None, max_splats: int | None = None, data: str | None = None,
+                  normalize: str = "auto", grid: int = 256, overwrite: bool = False) -> dict:
+    """Write the Gaussians of ``tree`` (or of a ``grid``^3 tree built from ``teacher``) to ``out`` in ``fmt`` and
+    ``<out>.json`` beside it (counts, sizes and :func:`input_frame`); returns that record."""
+    start = time.time()
+    out = Path(out)
+    if fmt not in FORMATS:
+        raise SplatFileError(f"{out}: unknown format {fmt!r}; choose {' or '.join(FORMATS)}")
+    if (tree is None) == (teacher is None):
+        raise ValueError("export needs exactly one of --tree TREE.npz and --teacher RUN")
+    check_output_file(out, overwrite)
+    with tempfile.TemporaryDirectory(prefix="nerfbake-export-") as tmp:
+        if teacher is not None:
+            _, tcfg, meta, _ = load_teacher(Path(teacher))  # a clear error for a folder of the wrong kind
+            data, normalize = data or meta["data"], tcfg.normalize
+            tree = build_octree(teacher, Path(tmp) / "tree.npz", replace(build_preset("cpu-small"), grid=grid))["tree"]
+        g = gaussians_from_tree(load_tree(tree), 0 if fmt == "splat" else sh_degree, max_splats)  # .splat: colour only
+    if len(g) == 0:
+        raise SplatFileError(f"{tree}: no leaf is opaque enough to become a splat (an empty tree); check it with "
+                             "nerfbake octree info")
+    record = {"file": str(out), "format": fmt, "source": str(teacher or tree), "num_splats": len(g),
+              "sh_degree": g.sh_degree, **input_frame(data, normalize)}
+    write_splats(g, out, fmt)
+    record.update(file_bytes=out.stat().st_size, seconds=round(time.time() - start, 1))
+    write_json(Path(f"{out}.json"), record)
+    return record
