@@ -22,6 +22,9 @@ class Export(Command):
     normalize: str = option("auto", "the --normalize the teacher was trained with (with --tree --data)",
                             choices=NORMALIZATIONS)
     grid: int = option(256, "with --teacher: the dense grid side of the tree built first")
+    eval_views: int = option(0, "score the splats on this many test views of --data (the torch reference "
+                             "rasteriser; PSNR/SSIM/LPIPS go into OUT.json)")
+    downscale: float = option(1.0, "image downscale of the --eval-views images (a teacher's own by default)")
     overwrite: bool = option(False, OVERWRITE)
     json: bool = option(False, JSON)
 
@@ -29,8 +32,13 @@ class Export(Command):
         from nerfbake.splats.export import export_splats
 
         return export_splats(self.out, self.format, self.tree, self.teacher, self.sh_degree, self.max_splats,
-                             self.data, self.normalize, self.grid, self.overwrite)
+                             self.data, self.normalize, self.grid, self.overwrite, self.eval_views, self.downscale)
 
     def text(self, r: dict) -> str:
+        scores = ""
+        if "eval" in r:
+            e = r["eval"]
+            scores = (f"; {e['split']} ({e['num_views']} views): PSNR {e['psnr']:.2f}  SSIM {e['ssim']:.4f}  "
+                      f"LPIPS-{e['lpips_net']} {e['lpips_' + e['lpips_net']]:.4f}")
         return (f"wrote {r['file']}: {r['num_splats']:,} splats (SH degree {r['sh_degree']}), "
-                f"{r['file_bytes'] / 1e6:.1f} MB; frame: {r['frame']} (see {r['file']}.json)")
+                f"{r['file_bytes'] / 1e6:.1f} MB{scores}; frame: {r['frame']} (see {r['file']}.json)")

@@ -10,10 +10,13 @@ import numpy as np
 
 from nerfbake.atomic import check_output_file, write_json
 from nerfbake.data.formats import load_dataset
+from nerfbake.eval.views import evaluate_views
 from nerfbake.octree.build import build_octree, build_preset
 from nerfbake.octree.io import load_tree
 from nerfbake.splats.from_tree import gaussians_from_tree
+from nerfbake.splats.gaussians import Gaussians
 from nerfbake.splats.io import FORMATS, SplatFileError, write_splats
+from nerfbake.splats.rasterize import render_gaussians
 from nerfbake.teacher.run import load_teacher
 
 
@@ -33,11 +36,24 @@ def input_frame(data: str | None, normalize: str) -> dict:
             "to_input_frame": back.tolist()}
 
 
+def evaluate_splats(g: Gaussians, data: str, normalize: str = "auto", downscale: float = 1.0, split: str = "test",
+                    max_views: int | None = 5) -> dict:
+    """PSNR / SSIM / LPIPS of the Gaussians on a held-out split, drawn by the torch reference rasteriser (the same
+    protocol as every other renderer's evaluation)."""
+    ds = load_dataset(data, downscale=downscale, normalize=normalize)
+    result = evaluate_views(lambda cam, bg: render_gaussians(g, cam, bg).numpy(), ds, split, max_views,
+                            desc="splats eval")
+    return {k: result[k] for k in ("psnr", "ssim", f"lpips_{result['lpips_net']}", "lpips_net", "num_views",
+                                   "seconds_per_view", "split")}
+
+
 def export_splats(out: str | Path, fmt: str, tree: str | Path | None = None, teacher: str | Path | None = None,
                   sh_degree: int | None = None, max_splats: int | None = None, data: str | None = None,
-                  normalize: str = "auto", grid: int = 256, overwrite: bool = False) -> dict:
+                  normalize: str = "auto", grid: int = 256, overwrite: bool = False, eval_views: int = 0,
+                  downscale: float = 1.0) -> dict:
     """Write the Gaussians of ``tree`` (or of a ``grid``^3 tree built from ``teacher``) to ``out`` in ``fmt`` and
-    ``<out>.json`` beside it (counts, sizes and :func:`input_frame`); returns that record."""
+    ``<out>.json`` beside it (counts, sizes, :func:`input_frame` and, with ``eval_views``, :func:`evaluate_splats`
+    on that many test views of ``data``); returns that record."""
     start = time.time()
     out = Path(out)
     if fmt not in FORMATS:
@@ -48,7 +64,7 @@ def export_splats(out: str | Path, fmt: str, tree: str | Path | None = None, tea
     with tempfile.TemporaryDirectory(prefix="nerfbake-export-") as tmp:
         if teacher is not None:
             _, tcfg, meta, _ = load_teacher(Path(teacher))  # a clear error for a folder of the wrong kind
-            data, normalize = data or meta["data"], tcfg.normalize
+            data, normalize, downscale = data or meta["data"], tcfg.normalize, tcfg.downscale
             tree = build_octree(teacher, Path(tmp) / "tree.npz", replace(build_preset("cpu-small"), grid=grid))["tree"]
         g = gaussians_from_tree(load_tree(tree), 0 if fmt == "splat" else sh_degree, max_splats)  # .splat: colour only
     if len(g) == 0:
@@ -56,6 +72,10 @@ def export_splats(out: str | Path, fmt: str, tree: str | Path | None = None, tea
                              "nerfbake octree info")
     record = {"file": str(out), "format": fmt, "source": str(teacher or tree), "num_splats": len(g),
               "sh_degree": g.sh_degree, **input_frame(data, normalize)}
+    if eval_views:
+        if data is None:
+            raise ValueError("--eval-views scores the splats on a dataset's test views: give --data (or --teacher)")
+        record["eval"] = evaluate_splats(g, data, normalize, downscale, max_views=eval_views)
     write_splats(g, out, fmt)
     record.update(file_bytes=out.stat().st_size, seconds=round(time.time() - start, 1))
     write_json(Path(f"{out}.json"), record)

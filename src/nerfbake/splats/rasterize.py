@@ -1,0 +1,114 @@
+"""The 3DGS rasteriser in plain torch: the reference that scores exported splats and that faster kernels are checked
+against; differentiable through autograd.
+
+Per Gaussian: the mean into the camera (OpenGL axes: the camera looks down -Z, image rows go down), the 3D
+covariance R S S^T R^T projected with the perspective Jacobian (EWA splatting) plus 0.3 px^2 on the diagonal (the
+reference's low-pass), the colour ``max(SH(d) . k + 0.5, 0)`` for the direction from the camera to the mean. Per
+pixel: ``alpha = min(0.99, opacity * exp(-0.5 d^T Sigma^-1 d))`` (pixel centres at +0.5), alphas under 1/255 skipped,
+front-to-back compositing by the means' depth, the background behind. Pixels are processed in 16 x 16 tiles, each
+against the Gaussians whose 3-sigma box touches it.
+"""
+from __future__ import annotations
+
+import torch
+
+from nerfbake.data.cameras import Camera
+from nerfbake.render.sh import sh_basis
+
+TILE = 16
+NEAR = 0.01
+LOW_PASS = 0.3  # px^2 added to the projected covariance's diagonal
+MIN_ALPHA = 1.0 / 255.0
+MAX_ALPHA = 0.99
+
+
+def quaternion_matrix(q: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices (N, 3, 3) of w-first quaternions (N, 4) (normalised here)."""
+    w, x, y, z = torch.nn.functional.normalize(q, dim=-1).unbind(-1)
+    return torch.stack([
+        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1).reshape(-1, 3, 3)
+
+
+def project(means, log_scales, quats, camera: Camera):
+    """Screen-space splats: centres (N, 2) in pixels, inverse 2D covariances (N, 2, 2), depths (N,), 3-sigma radii
+    (N,) in pixels; ``visible`` (N,) bool for the ones in front of the near plane."""
+    c2w = torch.as_tensor(camera.c2w, dtype=means.dtype, device=means.device)
+    rot, origin = c2w[:3, :3], c2w[:3, 3]
+    p = (means - origin) @ rot  # camera coordinates (x right, y up, -z forward)
+    depth = -p[:, 2]
+    visible = depth > NEAR
+    d = depth.clamp_min(NEAR)
+    u = camera.cx + camera.fx * p[:, 0] / d
+    v = camera.cy - camera.fy * p[:, 1] / d
+    s = torch.exp(log_scales)
+    m = quaternion_matrix(quats) * s[:, None, :]  # R S
+    cov_world = m @ m.transpose(1, 2)
+    cov_cam = rot.T @ cov_world @ rot
+    zeros = torch.zeros_like(d)
+    jac = torch.stack([camera.fx / d, zeros, camera.fx * p[:, 0] / d ** 2,
+                       zeros, -camera.fy / d, -camera.fy * p[:, 1] / d ** 2], -1).reshape(-1, 2, 3)
+    cov2 = jac @ cov_cam @ jac.transpose(1, 2) + LOW_PASS * torch.eye(2, dtype=means.dtype, device=means.device)
+    a, b, c = cov2[:, 0, 0], cov2[:, 0, 1], cov2[:, 1, 1]
+    det = (a * c - b * b).clamp_min(1e-12)
+    inv = torch.stack([c / det, -b / det, -b / det, a / det], -1).reshape(-1, 2, 2)
+    mid = 0.5 * (a + c)
+    radius = 3.0 * torch.sqrt(mid + torch.sqrt((mid * mid - det).clamp_min(0.0)))
+    return torch.stack([u, v], -1), inv, depth, radius, visible
+
+
+def splat_colors(means, sh, origin) -> torch.Tensor:
+    """(N, 3) colour of each Gaussian seen from ``origin`` (3,): max(SH(d) . k + 0.5, 0)."""
+    dirs = torch.nn.functional.normalize(means - origin, dim=-1)
+    degree = int(round(sh.shape[-1] ** 0.5)) - 1
+    return ((sh * sh_basis(degree, dirs)[:, None, :]).sum(-1) + 0.5).clamp_min(0.0)
+
+
+def rasterize(means, log_scales, quats, opacity_logits, sh, camera: Camera, background=(1.0, 1.0, 1.0)) -> torch.Tensor:
+    """(H, W, 3) image of the Gaussians (tensors as :class:`~nerfbake.splats.gaussians.Gaussians`, any float dtype)
+    from ``camera``; see the module docstring."""
+    dev, dt = means.device, means.dtype
+    centre, inv_cov, depth, radius, visible = project(means, log_scales, quats, camera)
+    origin = torch.as_tensor(camera.c2w[:3, 3], dtype=dt, device=dev)
+    color = splat_colors(means, sh, origin)
+    opacity = torch.sigmoid(opacity_logits)
+    W, H = camera.width, camera.height
+    lo = (centre - radius[:, None]).detach()
+    hi = (centre + radius[:, None]).detach()
+    on_screen = visible & (hi[:, 0] >= 0) & (hi[:, 1] >= 0) & (lo[:, 0] < W) & (lo[:, 1] < H)
+    order = torch.argsort(torch.where(on_screen, depth, torch.full_like(depth, float("inf"))).detach())
+    order = order[: int(on_screen.sum())]
+    bg = torch.as_tensor(background, dtype=dt, device=dev)
+    rows = []
+    for ty in range(0, H, TILE):
+        tiles = []
+        for tx in range(0, W, TILE):
+            w, h = min(TILE, W - tx), min(TILE, H - ty)
+            sel = order[(lo[order, 0] < tx + w) & (hi[order, 0] >= tx) & (lo[order, 1] < ty + h) & (hi[order, 1] >= ty)]
+            ys, xs = torch.meshgrid(torch.arange(ty, ty + h, dtype=dt, device=dev) + 0.5,
+                                    torch.arange(tx, tx + w, dtype=dt, device=dev) + 0.5, indexing="ij")
+            pix = torch.stack([xs, ys], -1).reshape(-1, 1, 2)
+            if sel.numel() == 0:
+                tiles.append(bg.expand(h, w, 3))
+                continue
+            delta = pix - centre[sel][None]  # (P, K, 2)
+            ic = inv_cov[sel]
+            power = -0.5 * (ic[None, :, 0, 0] * delta[..., 0] ** 2 + 2 * ic[None, :, 0, 1] * delta[..., 0] * delta[..., 1]
+                            + ic[None, :, 1, 1] * delta[..., 1] ** 2)
+            alpha = (opacity[sel][None] * torch.exp(power.clamp(max=0.0))).clamp(max=MAX_ALPHA)
+            alpha = torch.where(alpha >= MIN_ALPHA, alpha, torch.zeros_like(alpha))
+            trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], 1), 1)
+            weight = alpha * trans
+            rgb = weight @ color[sel] + (1 - weight.sum(1, keepdim=True)) * bg
+            tiles.append(rgb.reshape(h, w, 3))
+        rows.append(torch.cat(tiles, 1))
+    return torch.cat(rows, 0)
+
+
+def render_gaussians(g, camera: Camera, background=(1.0, 1.0, 1.0)) -> torch.Tensor:
+    """(H, W, 3) float32 image of :class:`~nerfbake.splats.gaussians.Gaussians` ``g`` (no gradients)."""
+    t = {k: torch.as_tensor(getattr(g, k), dtype=torch.float32)
+         for k in ("means", "log_scales", "quats", "opacity_logits", "sh")}
+    with torch.no_grad():
+        return rasterize(t["means"], t["log_scales"], t["quats"], t["opacity_logits"], t["sh"], camera, background)
