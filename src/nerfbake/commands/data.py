@@ -82,9 +82,6 @@ class Synth(Command):
             out = render_dataset(cfg, Path(self.out), progress=lambda done, total: advance(), overwrite=self.overwrite)
         return f"wrote {out} ({cfg.views} train / {held} val / {held} test views, {cfg.width}x{cfg.height})"
 
-    def text(self, result: str) -> str:
-        return result
-
 
 @dataclass(kw_only=True)
 class Process(Command):
@@ -112,6 +109,3 @@ class Process(Command):
                             camera_model=self.camera_model, matcher=self.matcher,
                             downscales=parse_downscales(self.downscales), overwrite=self.overwrite)
         return "\n".join(summary_lines(process(cfg, log=lambda line: print(line, file=sys.stderr))))
-
-    def text(self, result: str) -> str:
-        return result

@@ -165,7 +165,4 @@ class OctreeRender(Command):
         written = render_pose_file(self.tree, self.pose_file, self.out, opts, self.overwrite, self.depth)
         return f"wrote {len(written)} images to {self.out}"
 
-    def text(self, result: str) -> str:
-        return result
-
 

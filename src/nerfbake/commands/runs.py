@@ -128,9 +128,6 @@ class Report(Command):
 
         return str(write_report(self.run_folder, collect_results(self.run_folder)))
 
-    def text(self, path: str) -> str:
-        return path
-
 
 @dataclass(kw_only=True)
 class Doctor(Command):

@@ -109,6 +109,3 @@ class SmerfRender(Command):
         written = render_frames_to_folder(self.assets, self.out, self.frames, self.width, self.height, self.step_mult,
                                           self.overwrite)
         return f"wrote {len(written)} images to {self.out}"
-
-    def text(self, result: str) -> str:
-        return result

@@ -43,7 +43,8 @@ class Command:
         raise NotImplementedError
 
     def text(self, result) -> str | None:
-        return None
+        """A command that returns a line (or lines) prints it; a dict or a list needs the command's own words."""
+        return result if isinstance(result, str) else None
 
     def exit_code(self, result) -> int:
         return 0

@@ -76,6 +76,3 @@ class TeacherRender(Command):
 
         written = render_poses(Path(self.run_folder), Path(self.pose_file), Path(self.out), overwrite=self.overwrite)
         return f"wrote {len(written)} images to {self.out}"
-
-    def text(self, result: str) -> str:
-        return result
