@@ -24,7 +24,11 @@ class Export(Command):
     grid: int = option(256, "with --teacher: the dense grid side of the tree built first")
     eval_views: int = option(0, "score the splats on this many test views of --data (the torch reference "
                              "rasteriser; PSNR/SSIM/LPIPS go into OUT.json)")
-    downscale: float = option(1.0, "image downscale of the --eval-views images (a teacher's own by default)")
+    downscale: float = option(1.0, "image downscale of the --eval-views and --fit-steps images (a teacher's own by "
+                              "default)")
+    fit_steps: int = option(0, "fit the Gaussians to the teacher's renders of training views (or, with --tree, the "
+                            "training photos of --data) for this many steps of one 64x64 crop each")
+    fit_views: int = option(20, "training views to fit to (evenly spread)")
     overwrite: bool = option(False, OVERWRITE)
     json: bool = option(False, JSON)
 
@@ -32,7 +36,7 @@ class Export(Command):
         from nerfbake.splats.export import export_splats
 
         return export_splats(self.out, self.format, self.tree, self.teacher, self.sh_degree, self.max_splats,
-                             self.data, self.normalize, self.grid, self.overwrite, self.eval_views, self.downscale)
+                             self.data, self.normalize, self.grid, self.overwrite, self.eval_views, self.downscale, self.fit_steps, self.fit_views)
 
     def text(self, r: dict) -> str:
         scores = ""

@@ -9,14 +9,17 @@ from pathlib import Path
 import numpy as np
 
 from nerfbake.atomic import check_output_file, write_json
+from nerfbake.progress import progress_bar
 from nerfbake.data.formats import load_dataset
-from nerfbake.eval.views import evaluate_views
+from nerfbake.eval.views import evaluate_views, pick_views
 from nerfbake.octree.build import build_octree, build_preset
 from nerfbake.octree.io import load_tree
+from nerfbake.splats.fit import FitConfig, fit_gaussians
 from nerfbake.splats.from_tree import gaussians_from_tree
 from nerfbake.splats.gaussians import Gaussians
 from nerfbake.splats.io import FORMATS, SplatFileError, write_splats
 from nerfbake.splats.rasterize import render_gaussians
+from nerfbake.teacher.evaluate import render_camera
 from nerfbake.teacher.run import load_teacher
 
 
@@ -47,13 +50,29 @@ def evaluate_splats(g: Gaussians, data: str, normalize: str = "auto", downscale:
                                    "seconds_per_view", "split")}
 
 
+def target_views(data: str, normalize: str, downscale: float, num_views: int, teacher=None) -> list:
+    """(camera, image) pairs to fit splats to: ``num_views`` evenly spread training cameras with the teacher's renders
+    when there is a teacher, else the training photos."""
+    ds = load_dataset(data, downscale=downscale, normalize=normalize)
+    background = tuple(ds.background or (1.0, 1.0, 1.0))
+    views = []
+    with progress_bar("splat fit targets", num_views, unit="view") as advance:
+        for i in pick_views(ds.split("train"), num_views):
+            camera = ds.frames[i].camera
+            image = render_camera(teacher, camera, background)["rgb"] if teacher is not None else ds.image(i)[..., :3]
+            views.append((camera, np.asarray(image, np.float32)))
+            advance()
+    return views
+
+
 def export_splats(out: str | Path, fmt: str, tree: str | Path | None = None, teacher: str | Path | None = None,
                   sh_degree: int | None = None, max_splats: int | None = None, data: str | None = None,
                   normalize: str = "auto", grid: int = 256, overwrite: bool = False, eval_views: int = 0,
-                  downscale: float = 1.0) -> dict:
+                  downscale: float = 1.0, fit_steps: int = 0, fit_views: int = 20) -> dict:
     """Write the Gaussians of ``tree`` (or of a ``grid``^3 tree built from ``teacher``) to ``out`` in ``fmt`` and
     ``<out>.json`` beside it (counts, sizes, :func:`input_frame` and, with ``eval_views``, :func:`evaluate_splats`
-    on that many test views of ``data``); returns that record."""
+    on that many test views of ``data``); returns that record. ``fit_steps`` > 0 first fits the Gaussians to
+    ``fit_views`` :func:`target_views`."""
     start = time.time()
     out = Path(out)
     if fmt not in FORMATS:
@@ -61,9 +80,10 @@ def export_splats(out: str | Path, fmt: str, tree: str | Path | None = None, tea
     if (tree is None) == (teacher is None):
         raise ValueError("export needs exactly one of --tree TREE.npz and --teacher RUN")
     check_output_file(out, overwrite)
+    model = None
     with tempfile.TemporaryDirectory(prefix="nerfbake-export-") as tmp:
         if teacher is not None:
-            _, tcfg, meta, _ = load_teacher(Path(teacher))  # a clear error for a folder of the wrong kind
+            model, tcfg, meta, _ = load_teacher(Path(teacher))  # a clear error for a folder of the wrong kind
             data, normalize, downscale = data or meta["data"], tcfg.normalize, tcfg.downscale
             tree = build_octree(teacher, Path(tmp) / "tree.npz", replace(build_preset("cpu-small"), grid=grid))["tree"]
         g = gaussians_from_tree(load_tree(tree), 0 if fmt == "splat" else sh_degree, max_splats)  # .splat: colour only
@@ -72,6 +92,13 @@ def export_splats(out: str | Path, fmt: str, tree: str | Path | None = None, tea
                              "nerfbake octree info")
     record = {"file": str(out), "format": fmt, "source": str(teacher or tree), "num_splats": len(g),
               "sh_degree": g.sh_degree, **input_frame(data, normalize)}
+    if fit_steps:
+        if data is None:
+            raise ValueError("--fit-steps fits the splats to a dataset's training views: give --data (or --teacher)")
+        views = target_views(data, normalize, downscale, fit_views, model.eval() if model is not None else None)
+        g, history = fit_gaussians(g, views, FitConfig(steps=fit_steps))
+        record["fit"] = {"steps": fit_steps, "views": len(views), "targets": "teacher" if model is not None else "photos",
+                         "crop_psnr_first_last_50": [float(np.mean(history[:50])), float(np.mean(history[-50:]))]}
     if eval_views:
         if data is None:
             raise ValueError("--eval-views scores the splats on a dataset's test views: give --data (or --teacher)")
