@@ -1,6 +1,8 @@
-"""SMERF's camera partition on the two-room synthetic scene: one teacher, students with K = 1, 2 (, 3), each baked.
+"""SMERF's camera partition on a synthetic indoor scene (``rooms``: two rooms; ``house``: seven rooms on two storeys):
+one teacher, students with K = 1, 2 (, 3), each baked.
 
-Prints, per K: alive submodels, student and baked test PSNR / SSIM / LPIPS, ``disk_bytes`` and
+Prints, per K: alive submodels, student and baked test PSNR / SSIM / LPIPS, distillation and bake time and the peak
+memory (RSS) of that K's distillation and bake, run in a child process of their own, ``disk_bytes`` and
 ``peak_submodel_bytes`` (the whole scene against the largest submodel a viewer holds at once; also without the
 deferred-MLP file, which holds the MLPs of every submodel and which each folder repeats), times. Then, for the
 test cameras nearest a boundary between two alive cells, the camera rendered by its home submodel and by the
@@ -9,8 +11,12 @@ neighbour across that boundary (:mod:`nerfbake.smerf.seams`), from the student a
 Every K uses the same per-submodel resolution (``--sparse``, ``--triplane``), so a larger K buys more submodels,
 not bigger ones.
 
-    python benchmarks/smerf_partition.py [--size 128] [--views 80] [--spp 64] [--teacher-steps 2000]
-                                         [--steps 2000] [--ks 1,2] [--boundary-views 3] [--work DIR]
+    python benchmarks/smerf_partition.py [--scene rooms|house] [--size 128] [--views 80] [--spp 64]
+                                         [--teacher-steps 2000] [--steps 2000] [--k 1,2,3] [--boundary-views 3]
+                                         [--walkthrough] [--work DIR]
+
+``--walkthrough`` also flies the viewer along the test cameras (room after room) over each K's assets in headless
+chromium: per-frame p50/p95/max, frames drawn while a submodel loaded, blank frames, the most submodels resident.
     -> one JSON object on stdout; per boundary camera a PNG row in WORK: teacher | home | neighbour | baked home |
        baked neighbour
 """
@@ -18,7 +24,10 @@ from __future__ import annotations
 
 import argparse
 import json
+import resource
 import shutil
+import subprocess
+import sys
 import tempfile
 from dataclasses import asdict, replace
 from pathlib import Path
@@ -28,8 +37,6 @@ import numpy as np
 from nerfbake.data.formats import load_dataset
 from nerfbake.data.synth import SynthConfig, render_dataset
 from nerfbake.smerf.assets import SceneAssets
-from nerfbake.smerf.bake import bake_student
-from nerfbake.smerf.distill import distill
 from nerfbake.smerf.run import distill_preset, load_student
 from nerfbake.smerf.evaluate import asset_summary, evaluate_assets, evaluate_student
 from nerfbake.smerf.seams import boundary_cameras, compare_across_boundary
@@ -63,8 +70,31 @@ def run_seconds(folder: Path) -> float:
     return round(times[-1] - times[0], 1)
 
 
+CHILD = """
+import json, resource, sys
+from nerfbake.smerf.bake import bake_student
+from nerfbake.smerf.distill import distill
+from nerfbake.smerf.run import config_from_dict
+teacher, student, assets, cfg, need_distill = json.loads(sys.argv[1])
+if need_distill:
+    distill(teacher, student, config_from_dict(cfg))
+bake_student(student, assets)
+print(json.dumps({"peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024}))
+"""
+
+
+def distill_and_bake(teacher_dir: Path, student_dir: Path, assets: Path, cfg, need_distill: bool) -> int:
+    """Distil (unless finished) and bake in a child process; its peak RSS in bytes (this K's alone)."""
+    arg = json.dumps([str(teacher_dir), str(student_dir), str(assets), asdict(cfg), need_distill])
+    proc = subprocess.run([sys.executable, "-c", CHILD, arg], stdout=subprocess.PIPE, text=True)
+    if proc.returncode != 0:
+        raise SystemExit(f"distill/bake of {student_dir} failed (exit {proc.returncode})")
+    return int(json.loads(proc.stdout.strip().splitlines()[-1])["peak_rss_bytes"])
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
+    ap.add_argument("--scene", choices=("rooms", "house"), default="rooms")
     ap.add_argument("--size", type=int, default=128)
     ap.add_argument("--views", type=int, default=80, help="training views (val/test add a quarter each)")
     ap.add_argument("--spp", type=int, default=64)
@@ -72,7 +102,12 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=2000, help="distillation steps for every K")
     ap.add_argument("--sparse", type=int, default=128, help="sparse grid S per submodel, every K")
     ap.add_argument("--triplane", type=int, default=512, help="triplane T per submodel, every K")
-    ap.add_argument("--ks", default="1,2")
+    ap.add_argument("--k", "--ks", dest="ks", default="1,2", help="the K values, comma-separated")
+    ap.add_argument("--walkthrough", action="store_true", help="also fly the viewer along the test cameras per K")
+    ap.add_argument("--warm-start", choices=("on", "off"), help="the students' warm start from the teacher's "
+                    "density (default: the preset's)")
+    ap.add_argument("--consistency", type=float, help="the consistency loss's weight for K > 1 (default: the "
+                    "preset's)")
     ap.add_argument("--boundary-views", type=int, default=3)
     ap.add_argument("--work", help="keep everything here and reuse what is finished (default: a temporary folder)")
     args = ap.parse_args()
@@ -80,16 +115,18 @@ def main() -> None:
     work.mkdir(parents=True, exist_ok=True)
     scene = work / "scene"
     if not (scene / "transforms_test.json").is_file():
-        render_dataset(SynthConfig("rooms", args.size, args.size, views=args.views, spp=args.spp, seed=0), scene)
+        render_dataset(SynthConfig(args.scene, args.size, args.size, views=args.views, spp=args.spp, seed=0), scene)
     teacher_dir = work / "teacher"
     if not finished_with(teacher_dir, "train", steps=args.teacher_steps):
         shutil.rmtree(teacher_dir, ignore_errors=True)
         train_teacher(scene, teacher_dir, replace(preset("hash", "cpu-small"), steps=args.teacher_steps))
     teacher_eval = evaluate_teacher(teacher_dir, "test", write_images=False)
-    result = {"git": git_revision(), "scene": f"rooms {args.size}x{args.size}, {args.views} training views, spp {args.spp}",
+    result = {"git": git_revision(), "scene": f"{args.scene} {args.size}x{args.size}, {args.views} training views, spp {args.spp}",
               "teacher": {"steps": args.teacher_steps, "seconds": run_seconds(teacher_dir),
                           **{k: round(teacher_eval[k], 4) for k in ("psnr", "ssim", "lpips_vgg")}},
-              "student_config": {"steps": args.steps, "sparse_resolution": args.sparse, "triplane_resolution": args.triplane},
+              "student_config": {"steps": args.steps, "sparse_resolution": args.sparse, "triplane_resolution": args.triplane,
+                                 "warm_start": args.warm_start or "preset",
+                                 "consistency_mult": "preset" if args.consistency is None else args.consistency},
               "per_k": {}, "boundary": {}}
     teacher = load_teacher(teacher_dir)[0].eval()
     ds = load_dataset(scene)
@@ -99,23 +136,41 @@ def main() -> None:
         cfg = distill_preset("cpu-small", k)
         cfg = replace(cfg, steps=args.steps, student=StudentConfig(sparse_resolution=args.sparse,
                                                                      triplane_resolution=args.triplane))
-        if not finished_with(student_dir, "distill", steps=args.steps, student=asdict(cfg.student)):
-            shutil.rmtree(student_dir, ignore_errors=True)
+        if args.warm_start:
+            cfg = replace(cfg, warm_start=args.warm_start == "on")
+        if args.consistency is not None:
+            cfg = replace(cfg, consistency_mult=args.consistency)
+        rss_file = work / f"peak_rss_k{k}.json"
+        warm = {"warm_start": True} if cfg.warm_start else {}  # students from before the option had none
+        need_distill = not finished_with(student_dir, "distill", steps=args.steps, student=asdict(cfg.student),
+                                         consistency_mult=cfg.consistency_mult, **warm)
+        if need_distill or not (assets / "bake.json").is_file() or not rss_file.is_file():
+            if need_distill:
+                shutil.rmtree(student_dir, ignore_errors=True)
             shutil.rmtree(assets, ignore_errors=True)
-            distill(teacher_dir, student_dir, cfg)
-        if not (assets / "bake.json").is_file():
-            bake_student(student_dir, assets)
+            rss = distill_and_bake(teacher_dir, student_dir, assets, cfg, need_distill)
+            rss_file.write_text(json.dumps({"bytes": rss, "of": "distill + bake" if need_distill else "bake only"}))
         s_eval = evaluate_student(student_dir, write_images=False)
         b_eval = evaluate_assets(assets, write_images=False)
         sizes = asset_summary(assets)
         result["per_k"][k] = {
             "num_submodels": b_eval["num_submodels"], "distill_seconds": run_seconds(student_dir),
             "bake_seconds": round(json.loads((assets / "bake.json").read_text())["seconds"], 1),
+            "peak_rss_bytes": json.loads(rss_file.read_text())["bytes"],
+            "peak_rss_of": json.loads(rss_file.read_text())["of"],
             "disk_bytes": b_eval["disk_bytes"],
             "peak_submodel_bytes": b_eval["peak_submodel_bytes"],
             "peak_submodel_grid_bytes": sizes["peak_submodel_grid_bytes"], "deferred_mlp_bytes": sizes["deferred_mlp_bytes"],
             "student": {m: round(s_eval[m], 4) for m in QUALITY}, "baked": {m: round(b_eval[m], 4) for m in QUALITY},
             "format_problems": b_eval["format_problems"]}
+        if args.walkthrough:
+            from nerfbake.viewer.browser import run_walkthrough
+            from nerfbake.viewer.server import find_scene
+
+            walk = run_walkthrough(find_scene(assets))
+            result["per_k"][k]["walkthrough"] = {key: walk[key] for key in (
+                "frames", "p50_ms", "p95_ms", "max_ms", "frames_while_loading", "blank_frames", "max_resident",
+                "max_host_cache")}
         if k > 1:
             student = load_student(student_dir)[0]
             pairs = boundary_cameras(student.partition, test_origins, args.boundary_views)
@@ -130,7 +185,10 @@ def main() -> None:
         "peak_submodel_over_k1_peak": [round(p / peaks[0], 3) for p in peaks],
         "peak_submodel_grid_over_k1": [round(g / grids[0], 3) for g in grids],
         "boundary_seamless": all(q["seamless"] for qs in result["boundary"].values() for q in qs),
+        "student_psnr_by_k": [result["per_k"][k]["student"]["psnr"] for k in ks],
+        "baked_psnr_by_k": [result["per_k"][k]["baked"]["psnr"] for k in ks],
     }
+    result["benchmark_peak_rss_bytes"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     print(json.dumps(result, indent=1))
     if not args.work:
         shutil.rmtree(work, ignore_errors=True)

@@ -40,6 +40,7 @@ from nerfbake.eval.metrics import patch_dssim
 from nerfbake.eval.views import validation_image
 from nerfbake.progress import console, progress_bar
 from nerfbake.render.packed import packed_median_depth
+from nerfbake.render.quantize import RANGE_DENSITY
 from nerfbake.smerf.partition import Partition, PartitionError
 from nerfbake.smerf.run import CHECKPOINT, CONFIG, DistillConfig
 from nerfbake.smerf.student import Student
@@ -72,6 +73,27 @@ def empty_space_loss(student: Student, teacher: Teacher, num_points: int, gen: t
     alpha_t = 1 - torch.exp(-sigma_t * step / student.partition.scale)  # teacher sigma is per world unit
     alpha_s = 1 - torch.exp(-student.features(z, sm, quantize)["density"] * step)
     return (alpha_s - alpha_t).abs().mean()
+
+
+@torch.no_grad()
+def warm_start_density(student: Student, teacher: Teacher, floor: float = -4.0, chunk: int = 1 << 18) -> None:
+    """Start every submodel's sparse density from the teacher's: at each voxel centre of each alive submodel, the
+    pre-activation whose density (per cube unit) is the teacher's there, at least ``floor`` (exp(floor - 1) per cube
+    unit: invisible at the viewer's step, yet not so deep that gradients cannot raise it). Explicit grids learn only
+    where training rays pass; without this, a submodel's space that few of its rays cross keeps the uniform starting
+    density (K > 1 splits the rays between submodels, so much of each one's space is such)."""
+    s, dev = student.cfg.sparse_resolution, student.sparse.device
+    centres = (torch.arange(s, dtype=torch.float32) + 0.5) / s * 4.0 - 2.0
+    grid = torch.stack(torch.meshgrid(centres, centres, centres, indexing="ij"), -1).reshape(-1, 3)
+    with progress_bar("warm start from the teacher", student.partition.num_alive * grid.shape[0], unit="voxels") as adv:
+        for sm in range(student.partition.num_alive):
+            for a in range(0, grid.shape[0], chunk):
+                z = grid[a:a + chunk].to(dev)
+                world = student.world_from_contracted(z, torch.full((z.shape[0],), sm, device=dev))
+                sigma = teacher.density_at(world).float() / student.partition.scale
+                pre = torch.log(sigma.clamp_min(1e-30)) + 1.0
+                student.sparse[sm * s ** 3 + a: sm * s ** 3 + a + z.shape[0], 0] = pre.clamp(floor, RANGE_DENSITY[1])
+                adv(z.shape[0])
 
 
 def uncontract_norm(z: torch.Tensor) -> torch.Tensor:
@@ -166,6 +188,8 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
         partition = Partition.from_cameras(origins, cfg.k, surface_distances=reach, core_quantile=cfg.core_quantile)
     torch.manual_seed(cfg.seed)
     student = Student(cfg.student, partition, cfg.seed).to(dp.device)
+    if cfg.warm_start and not (resume and (out / CHECKPOINT).is_file()):
+        warm_start_density(student, teacher)
     opt = torch.optim.Adam([{"params": [student.sparse, student.planes], "lr": cfg.lr_grid},
                             {"params": list(student.mlp.parameters()), "lr": cfg.lr_mlp}],
                            betas=(0.9, 0.99), eps=1e-15, fused=True)

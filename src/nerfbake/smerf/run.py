@@ -44,6 +44,7 @@ class DistillConfig:
     reassign_fraction: float = 0.2
     downscale: float | None = dc_field(default=None, metadata={
         "help": "image downscale of the training photos (default: the teacher's)"})
+    warm_start: bool = False  # start the sparse density from the teacher's (distill.warm_start_density)
     core_quantile: float = 0.1  # K = 1: the share of the training views' surfaces kept in the core (Partition)
     cull_alpha: tuple[float, float] = (5e-4, 5e-3)
     cull_window: tuple[float, float] = (0.4, 0.8)  # fractions of the run over which culling ramps up
