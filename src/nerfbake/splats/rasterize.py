@@ -69,11 +69,18 @@ def rasterize(means, log_scales, quats, opacity_logits, sh, camera: Camera, back
     """(H, W, 3) image of the Gaussians (tensors as :class:`~nerfbake.splats.gaussians.Gaussians`, any float dtype)
     from ``camera``; see the module docstring."""
     dev, dt = means.device, means.dtype
+    W, H = camera.width, camera.height
+    with torch.no_grad():  # which Gaussians touch the image: only those go through the differentiable path
+        centre, _, depth, radius, visible = project(means, log_scales, quats, camera)
+        seen = visible & (centre[:, 0] + radius >= 0) & (centre[:, 1] + radius >= 0) & (centre[:, 0] - radius < W) \
+            & (centre[:, 1] - radius < H)
+        keep = torch.nonzero(seen).squeeze(1)
+    if keep.numel() < means.shape[0]:
+        means, log_scales, quats, opacity_logits, sh = (t[keep] for t in (means, log_scales, quats, opacity_logits, sh))
     centre, inv_cov, depth, radius, visible = project(means, log_scales, quats, camera)
     origin = torch.as_tensor(camera.c2w[:3, 3], dtype=dt, device=dev)
     color = splat_colors(means, sh, origin)
     opacity = torch.sigmoid(opacity_logits)
-    W, H = camera.width, camera.height
     lo = (centre - radius[:, None]).detach()
     hi = (centre + radius[:, None]).detach()
     on_screen = visible & (hi[:, 0] >= 0) & (hi[:, 1] >= 0) & (lo[:, 0] < W) & (lo[:, 1] < H)
