@@ -77,27 +77,22 @@ def empty_space_loss(student: Student, teacher: Teacher, num_points: int, gen: t
 
 @torch.no_grad()
 def warm_start_density(student: Student, teacher: Teacher, floor: float = -4.0, chunk: int = 1 << 18) -> None:
-    """Start every submodel's sparse density in its uncontracted core from the teacher's: at each core voxel centre
-    of each alive submodel, the pre-activation whose density (per cube unit) is the teacher's there, at least
-    ``floor`` (exp(floor - 1) per cube unit: invisible at the viewer's step, yet not so deep that gradients cannot
-    raise it). Explicit grids learn only where training rays pass; without this, a submodel's space that few of its
-    rays cross keeps the uniform starting density (K > 1 splits the rays between submodels, so much of each one's
-    space is such). The contracted shell keeps the default start: one of its voxels spans a large stretch of the
-    world, which the teacher's density at its centre does not describe (copied there, walls became opaque blocks
-    across the rooms in the baked scene, whose viewer marches that whole stretch)."""
+    """Start every submodel's sparse density from the teacher's: at each voxel centre of each alive submodel, the
+    pre-activation whose density (per cube unit) is the teacher's there, at least ``floor`` (exp(floor - 1) per cube
+    unit: invisible at the viewer's step, yet not so deep that gradients cannot raise it). Explicit grids learn only
+    where training rays pass; without this, a submodel's space that few of its rays cross keeps the uniform starting
+    density (K > 1 splits the rays between submodels, so much of each one's space is such)."""
     s, dev = student.cfg.sparse_resolution, student.sparse.device
     centres = (torch.arange(s, dtype=torch.float32) + 0.5) / s * 4.0 - 2.0
     grid = torch.stack(torch.meshgrid(centres, centres, centres, indexing="ij"), -1).reshape(-1, 3)
-    core = grid.abs().amax(-1) <= 1.0
     with progress_bar("warm start from the teacher", student.partition.num_alive * grid.shape[0], unit="voxels") as adv:
         for sm in range(student.partition.num_alive):
             for a in range(0, grid.shape[0], chunk):
                 z = grid[a:a + chunk].to(dev)
                 world = student.world_from_contracted(z, torch.full((z.shape[0],), sm, device=dev))
                 sigma = teacher.density_at(world).float() / student.partition.scale
-                pre = (torch.log(sigma.clamp_min(1e-30)) + 1.0).clamp(floor, RANGE_DENSITY[1])
-                rows = student.sparse[sm * s ** 3 + a: sm * s ** 3 + a + z.shape[0], 0]
-                rows.copy_(torch.where(core[a:a + z.shape[0]].to(dev), pre, rows))
+                pre = torch.log(sigma.clamp_min(1e-30)) + 1.0
+                student.sparse[sm * s ** 3 + a: sm * s ** 3 + a + z.shape[0], 0] = pre.clamp(floor, RANGE_DENSITY[1])
                 adv(z.shape[0])
 
 
