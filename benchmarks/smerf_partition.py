@@ -156,8 +156,7 @@ def main() -> None:
         result["per_k"][k] = {
             "num_submodels": b_eval["num_submodels"], "distill_seconds": run_seconds(student_dir),
             "bake_seconds": round(json.loads((assets / "bake.json").read_text())["seconds"], 1),
-            "peak_rss_bytes": json.loads(rss_file.read_text())["bytes"],
-            "peak_rss_of": json.loads(rss_file.read_text())["of"],
+            **{f"peak_rss_{key}": value for key, value in json.loads(rss_file.read_text()).items()},
             "disk_bytes": b_eval["disk_bytes"],
             "peak_submodel_bytes": b_eval["peak_submodel_bytes"],
             "peak_submodel_grid_bytes": sizes["peak_submodel_grid_bytes"], "deferred_mlp_bytes": sizes["deferred_mlp_bytes"],

@@ -79,12 +79,12 @@ def add_option(parser, name: str, hint, meta, field_default, dest: str, default)
         parser.add_argument(dest, type=kind, **{"metavar": meta.get("flag"), **kw})
         return
     flag = meta.get("flag") or "--" + name.replace("_", "-")
+    if kind is bool:  # a switch to the opposite of the field's default
+        parser.add_argument(flag, dest=dest, action="store_const", const=not field_default, default=default, **kw)
+        return
     if "choices" not in kw:
         kw.setdefault("metavar", name.upper())  # not the dest ("overrides:grid")
-    if kind is bool:  # a switch to the opposite of the field's default
-        kw.pop("metavar")
-        parser.add_argument(flag, dest=dest, action="store_const", const=not field_default, default=default, **kw)
-    elif default is dataclasses.MISSING:
+    if default is dataclasses.MISSING:
         parser.add_argument(flag, dest=dest, type=kind, required=True, **kw)
     else:
         parser.add_argument(flag, dest=dest, type=kind, default=default, **kw)

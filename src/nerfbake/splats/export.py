@@ -17,7 +17,7 @@ from nerfbake.octree.io import load_tree
 from nerfbake.splats.fit import FitConfig, fit_gaussians
 from nerfbake.splats.from_tree import gaussians_from_tree
 from nerfbake.splats.gaussians import Gaussians
-from nerfbake.splats.io import FORMATS, SplatFileError, write_splats
+from nerfbake.splats.io import SplatFileError, check_format, write_splats
 from nerfbake.splats.rasterize import render_gaussians
 from nerfbake.teacher.evaluate import render_camera
 from nerfbake.teacher.run import load_teacher
@@ -75,8 +75,7 @@ def export_splats(out: str | Path, fmt: str, tree: str | Path | None = None, tea
     ``fit_views`` :func:`target_views`."""
     start = time.time()
     out = Path(out)
-    if fmt not in FORMATS:
-        raise SplatFileError(f"{out}: unknown format {fmt!r}; choose {' or '.join(FORMATS)}")
+    check_format(out, fmt)  # before any work
     if (tree is None) == (teacher is None):
         raise ValueError("export needs exactly one of --tree TREE.npz and --teacher RUN")
     check_output_file(out, overwrite)

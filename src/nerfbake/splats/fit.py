@@ -17,10 +17,8 @@ import torch
 from nerfbake.data.cameras import Camera
 from nerfbake.eval.metrics import patch_dssim
 from nerfbake.progress import progress_bar
-from nerfbake.splats.gaussians import Gaussians
+from nerfbake.splats.gaussians import FIELDS, Gaussians
 from nerfbake.splats.rasterize import rasterize
-
-PARAMS = ("means", "log_scales", "quats", "opacity_logits", "sh")
 
 
 @dataclass
@@ -48,7 +46,7 @@ def fit_gaussians(g: Gaussians, views: list[tuple[Camera, np.ndarray]], cfg: Fit
     if not views:
         raise ValueError("fitting splats needs at least one target view")
     rng = random.Random(cfg.seed)
-    params = {k: torch.nn.Parameter(torch.as_tensor(getattr(g, k), dtype=torch.float32).clone()) for k in PARAMS}
+    params = {k: torch.nn.Parameter(torch.as_tensor(getattr(g, k), dtype=torch.float32).clone()) for k in FIELDS}
     extent = float(np.ptp(g.means, axis=0).max()) if len(g) > 1 else 1.0
     opt = torch.optim.Adam([
         {"params": [params["means"]], "lr": cfg.lr_means * extent},
@@ -66,7 +64,7 @@ def fit_gaussians(g: Gaussians, views: list[tuple[Camera, np.ndarray]], cfg: Fit
             w, h = min(cfg.crop, camera.width), min(cfg.crop, camera.height)
             x0, y0 = rng.randrange(camera.width - w + 1), rng.randrange(camera.height - h + 1)
             target = torch.as_tensor(image[y0:y0 + h, x0:x0 + w], dtype=torch.float32)
-            pred = rasterize(*(params[k] for k in PARAMS), crop_camera(camera, x0, y0, w, h), background)
+            pred = rasterize(*(params[k] for k in FIELDS), crop_camera(camera, x0, y0, w, h), background)
             l1 = (pred - target).abs().mean()
             loss = (1 - cfg.dssim_mult) * l1
             if cfg.dssim_mult > 0 and h >= 3 and w >= 3:
@@ -80,5 +78,5 @@ def fit_gaussians(g: Gaussians, views: list[tuple[Camera, np.ndarray]], cfg: Fit
             mse = float(((pred.detach().clamp(0, 1) - target) ** 2).mean())
             history.append(-10 * math.log10(max(mse, 1e-10)))
             advance(psnr=history[-1])
-    out = {k: params[k].detach().double().numpy() for k in PARAMS}
+    out = {k: params[k].detach().double().numpy() for k in FIELDS}
     return Gaussians(**out), history

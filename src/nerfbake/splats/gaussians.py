@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 SH_C0 = 0.28209479177387814  # the degree-0 basis value: colour = SH_C0 * f_dc + 0.5 seen from any direction
+FIELDS = ("means", "log_scales", "quats", "opacity_logits", "sh")  # in the rasteriser's argument order
 
 
 @dataclass
@@ -44,7 +45,3 @@ class Gaussians:
     def base_colors(self) -> np.ndarray:
         """(N, 3) the view-independent colour (degree 0 only), as compact formats store it."""
         return np.clip(SH_C0 * self.sh[:, :, 0] + 0.5, 0.0, 1.0)
-
-    def subset(self, keep: np.ndarray) -> "Gaussians":
-        return Gaussians(self.means[keep], self.log_scales[keep], self.quats[keep], self.opacity_logits[keep],
-                         self.sh[keep])

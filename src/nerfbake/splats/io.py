@@ -65,10 +65,14 @@ def splat_bytes(g: Gaussians) -> bytes:
 FORMATS = {"ply": ply_bytes, "splat": splat_bytes}
 
 
-def write_splats(g: Gaussians, path: str | Path, fmt: str) -> Path:
-    """Write ``g`` in ``fmt`` (``ply`` or ``splat``) at ``path``, whole or not at all."""
+def check_format(path, fmt: str) -> None:
     if fmt not in FORMATS:
         raise SplatFileError(f"{path}: unknown splat format {fmt!r}; choose {' or '.join(FORMATS)}")
+
+
+def write_splats(g: Gaussians, path: str | Path, fmt: str) -> Path:
+    """Write ``g`` in ``fmt`` (``ply`` or ``splat``) at ``path``, whole or not at all."""
+    check_format(path, fmt)
     if len(g) == 0:
         raise SplatFileError(f"{path}: no Gaussians to write (the scene is empty); check the tree with nerfbake octree info")
     data = FORMATS[fmt](g)
@@ -104,7 +108,6 @@ def read_ply(path: str | Path) -> Gaussians:
         sh = np.concatenate([sh, stack(rest).reshape(count, 3, basis - 1)], 2)
     return Gaussians(stack("xyz"), stack(["scale_0", "scale_1", "scale_2"]),
                      stack(["rot_0", "rot_1", "rot_2", "rot_3"]), col["opacity"], sh)
-
 
 
 def read_splat(path: str | Path) -> Gaussians:

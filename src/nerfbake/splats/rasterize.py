@@ -14,6 +14,7 @@ import torch
 
 from nerfbake.data.cameras import Camera
 from nerfbake.render.sh import sh_basis
+from nerfbake.splats.gaussians import FIELDS
 
 TILE = 16
 NEAR = 0.01
@@ -77,15 +78,13 @@ def rasterize(means, log_scales, quats, opacity_logits, sh, camera: Camera, back
         keep = torch.nonzero(seen).squeeze(1)
     if keep.numel() < means.shape[0]:
         means, log_scales, quats, opacity_logits, sh = (t[keep] for t in (means, log_scales, quats, opacity_logits, sh))
-    centre, inv_cov, depth, radius, visible = project(means, log_scales, quats, camera)
+    centre, inv_cov, depth, radius, _ = project(means, log_scales, quats, camera)  # every one of them touches it
     origin = torch.as_tensor(camera.c2w[:3, 3], dtype=dt, device=dev)
     color = splat_colors(means, sh, origin)
     opacity = torch.sigmoid(opacity_logits)
     lo = (centre - radius[:, None]).detach()
     hi = (centre + radius[:, None]).detach()
-    on_screen = visible & (hi[:, 0] >= 0) & (hi[:, 1] >= 0) & (lo[:, 0] < W) & (lo[:, 1] < H)
-    order = torch.argsort(torch.where(on_screen, depth, torch.full_like(depth, float("inf"))).detach())
-    order = order[: int(on_screen.sum())]
+    order = torch.argsort(depth.detach())
     bg = torch.as_tensor(background, dtype=dt, device=dev)
     rows = []
     for ty in range(0, H, TILE):
@@ -93,12 +92,12 @@ def rasterize(means, log_scales, quats, opacity_logits, sh, camera: Camera, back
         for tx in range(0, W, TILE):
             w, h = min(TILE, W - tx), min(TILE, H - ty)
             sel = order[(lo[order, 0] < tx + w) & (hi[order, 0] >= tx) & (lo[order, 1] < ty + h) & (hi[order, 1] >= ty)]
-            ys, xs = torch.meshgrid(torch.arange(ty, ty + h, dtype=dt, device=dev) + 0.5,
-                                    torch.arange(tx, tx + w, dtype=dt, device=dev) + 0.5, indexing="ij")
-            pix = torch.stack([xs, ys], -1).reshape(-1, 1, 2)
             if sel.numel() == 0:
                 tiles.append(bg.expand(h, w, 3))
                 continue
+            ys, xs = torch.meshgrid(torch.arange(ty, ty + h, dtype=dt, device=dev) + 0.5,
+                                    torch.arange(tx, tx + w, dtype=dt, device=dev) + 0.5, indexing="ij")
+            pix = torch.stack([xs, ys], -1).reshape(-1, 1, 2)
             delta = pix - centre[sel][None]  # (P, K, 2)
             ic = inv_cov[sel]
             power = -0.5 * (ic[None, :, 0, 0] * delta[..., 0] ** 2 + 2 * ic[None, :, 0, 1] * delta[..., 0] * delta[..., 1]
@@ -115,7 +114,5 @@ def rasterize(means, log_scales, quats, opacity_logits, sh, camera: Camera, back
 
 def render_gaussians(g, camera: Camera, background=(1.0, 1.0, 1.0)) -> torch.Tensor:
     """(H, W, 3) float32 image of :class:`~nerfbake.splats.gaussians.Gaussians` ``g`` (no gradients)."""
-    t = {k: torch.as_tensor(getattr(g, k), dtype=torch.float32)
-         for k in ("means", "log_scales", "quats", "opacity_logits", "sh")}
     with torch.no_grad():
-        return rasterize(t["means"], t["log_scales"], t["quats"], t["opacity_logits"], t["sh"], camera, background)
+        return rasterize(*(torch.as_tensor(getattr(g, k), dtype=torch.float32) for k in FIELDS), camera, background)

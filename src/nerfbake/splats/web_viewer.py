@@ -66,16 +66,16 @@ def gsplat_camera(camera: Camera) -> dict:
     if abs(camera.cx - camera.width / 2) > 0.5 or abs(camera.cy - camera.height / 2) > 0.5:
         raise ValueError("gsplat.js puts the principal point at the image centre; this camera's is elsewhere")
     r = camera.c2w[:3, :3] @ np.diag([1.0, -1.0, -1.0])
-    w = np.sqrt(max(1e-12, 1.0 + np.trace(r))) / 2
-    x, y, z = (r[2, 1] - r[1, 2]) / (4 * w), (r[0, 2] - r[2, 0]) / (4 * w), (r[1, 0] - r[0, 1]) / (4 * w)
-    if 1.0 + np.trace(r) < 1e-3:  # near a half turn: the general (Shepperd) branch
+    q = np.zeros(4)  # x, y, z, w by Shepperd's method: from the largest of w^2, x^2, y^2, z^2, stable at half turns
+    if np.trace(r) >= np.diag(r).max():
+        s = 2.0 * np.sqrt(1.0 + np.trace(r))
+        q[:] = (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, s / 4
+    else:
         i = int(np.argmax(np.diag(r)))
         j, k = (i + 1) % 3, (i + 2) % 3
-        s = np.sqrt(max(1e-12, 1.0 + r[i, i] - r[j, j] - r[k, k])) * 2
-        q = np.zeros(4)
+        s = 2.0 * np.sqrt(1.0 + r[i, i] - r[j, j] - r[k, k])
         q[i], q[j], q[k], q[3] = s / 4, (r[j, i] + r[i, j]) / s, (r[k, i] + r[i, k]) / s, (r[k, j] - r[j, k]) / s
-        x, y, z, w = q
-    return {"position": camera.c2w[:3, 3].tolist(), "rotation": [float(x), float(y), float(z), float(w)],
+    return {"position": camera.c2w[:3, 3].tolist(), "rotation": q.tolist(),
             "fx": float(camera.fx), "fy": float(camera.fy)}
 
 
