@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from nerfbake.data.normalization import NORMALIZATIONS, TREE_NORMALIZE_HELP
 from nerfbake.data.formats import load_dataset
+from nerfbake.data.normalization import NORMALIZATIONS, TREE_NORMALIZE_HELP
 from nerfbake.data.rays import camera_rays
 from nerfbake.kernels.octree import backward_buffers, render_backward, render_forward
 from nerfbake.octree.evaluate import ViewLoss

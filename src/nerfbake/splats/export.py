@@ -10,6 +10,7 @@ import numpy as np
 
 from nerfbake.atomic import check_output_file, write_json
 from nerfbake.progress import progress_bar
+from nerfbake.data.dataset import Dataset
 from nerfbake.data.formats import load_dataset
 from nerfbake.eval.views import evaluate_views, pick_views
 from nerfbake.octree.build import build_octree, build_preset
@@ -23,37 +24,34 @@ from nerfbake.teacher.evaluate import render_camera
 from nerfbake.teacher.run import load_teacher
 
 
-def input_frame(data: str | None, normalize: str) -> dict:
+def input_frame(ds: Dataset | None) -> dict:
     """How the splats' coordinates (the teacher's normalised frame) map back to the input photos' coordinates: the
-    dataset's normalisation and the 4x4 matrix ``to_input_frame`` (p_input = M @ [p, 1]); without ``data``, a
+    dataset's normalisation and the 4x4 matrix ``to_input_frame`` (p_input = M @ [p, 1]); without a dataset, a
     note that the frame is the normalised one."""
-    if data is None:
+    if ds is None:
         return {"frame": "the tree's world frame (the teacher's normalised frame); pass --data to record the "
                          "transform to the photos' frame", "to_input_frame": np.eye(4).tolist()}
-    norm = load_dataset(data, normalize=normalize).normalization
+    norm = ds.normalization
     rotation, translation = norm.transform[:3, :3], norm.transform[:3, 3]
     back = np.eye(4)
     back[:3, :3] = rotation.T / norm.scale
     back[:3, 3] = -rotation.T @ translation
-    return {"frame": f"normalised by {norm.method} ({data})", "normalization": norm.to_json(),
+    return {"frame": f"normalised by {norm.method} ({ds.root})", "normalization": norm.to_json(),
             "to_input_frame": back.tolist()}
 
 
-def evaluate_splats(g: Gaussians, data: str, normalize: str = "auto", downscale: float = 1.0, split: str = "test",
-                    max_views: int | None = 5) -> dict:
+def evaluate_splats(g: Gaussians, ds: Dataset, split: str = "test", max_views: int | None = 5) -> dict:
     """PSNR / SSIM / LPIPS of the Gaussians on a held-out split, drawn by the torch reference rasteriser (the same
     protocol as every other renderer's evaluation)."""
-    ds = load_dataset(data, downscale=downscale, normalize=normalize)
     result = evaluate_views(lambda cam, bg: render_gaussians(g, cam, bg).numpy(), ds, split, max_views,
                             desc="splats eval")
     return {k: result[k] for k in ("psnr", "ssim", f"lpips_{result['lpips_net']}", "lpips_net", "num_views",
                                    "seconds_per_view", "split")}
 
 
-def target_views(data: str, normalize: str, downscale: float, num_views: int, teacher=None) -> list:
+def target_views(ds: Dataset, num_views: int, teacher=None) -> list:
     """(camera, image) pairs to fit splats to: ``num_views`` evenly spread training cameras with the teacher's renders
     when there is a teacher, else the training photos."""
-    ds = load_dataset(data, downscale=downscale, normalize=normalize)
     background = tuple(ds.background or (1.0, 1.0, 1.0))
     views = []
     with progress_bar("splat fit targets", num_views, unit="view") as advance:
@@ -75,9 +73,11 @@ def export_splats(out: str | Path, fmt: str, tree: str | Path | None = None, tea
     ``fit_views`` :func:`target_views`."""
     start = time.time()
     out = Path(out)
-    check_format(out, fmt)  # before any work
+    check_format(out, fmt)  # every check before any work
     if (tree is None) == (teacher is None):
         raise ValueError("export needs exactly one of --tree TREE.npz and --teacher RUN")
+    if data is None and teacher is None and (fit_steps or eval_views):
+        raise ValueError("--fit-steps and --eval-views use a dataset's views: give --data (or --teacher)")
     check_output_file(out, overwrite)
     model = None
     with tempfile.TemporaryDirectory(prefix="nerfbake-export-") as tmp:
@@ -86,22 +86,19 @@ def export_splats(out: str | Path, fmt: str, tree: str | Path | None = None, tea
             data, normalize, downscale = data or meta["data"], tcfg.normalize, tcfg.downscale
             tree = build_octree(teacher, Path(tmp) / "tree.npz", replace(build_preset("cpu-small"), grid=grid))["tree"]
         g = gaussians_from_tree(load_tree(tree), 0 if fmt == "splat" else sh_degree, max_splats)  # .splat: colour only
+    ds = None if data is None else load_dataset(data, downscale=downscale, normalize=normalize)
     if len(g) == 0:
         raise SplatFileError(f"{tree}: no leaf is opaque enough to become a splat (an empty tree); check it with "
                              "nerfbake octree info")
     record = {"file": str(out), "format": fmt, "source": str(teacher or tree), "num_splats": len(g),
-              "sh_degree": g.sh_degree, **input_frame(data, normalize)}
+              "sh_degree": g.sh_degree, **input_frame(ds)}
     if fit_steps:
-        if data is None:
-            raise ValueError("--fit-steps fits the splats to a dataset's training views: give --data (or --teacher)")
-        views = target_views(data, normalize, downscale, fit_views, model.eval() if model is not None else None)
+        views = target_views(ds, fit_views, model.eval() if model is not None else None)
         g, history = fit_gaussians(g, views, FitConfig(steps=fit_steps))
         record["fit"] = {"steps": fit_steps, "views": len(views), "targets": "teacher" if model is not None else "photos",
                          "crop_psnr_first_last_50": [float(np.mean(history[:50])), float(np.mean(history[-50:]))]}
     if eval_views:
-        if data is None:
-            raise ValueError("--eval-views scores the splats on a dataset's test views: give --data (or --teacher)")
-        record["eval"] = evaluate_splats(g, data, normalize, downscale, max_views=eval_views)
+        record["eval"] = evaluate_splats(g, ds, max_views=eval_views)
     write_splats(g, out, fmt)
     record.update(file_bytes=out.stat().st_size, seconds=round(time.time() - start, 1))
     write_json(Path(f"{out}.json"), record)
