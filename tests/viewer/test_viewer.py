@@ -19,8 +19,10 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
 
 # --- pictures against the Python renderers ----------------------------------------------------------------------------
 
-@pytest.mark.parametrize("which", ["ours", "official"])
-def test_smerf_view_matches_the_python_renderer(which, tiny_assets_dir):
+@pytest.mark.parametrize("which,stride", [("ours", None), ("official", None), ("ours", 0), ("official", 0)])
+def test_smerf_view_matches_the_python_renderer(which, stride, tiny_assets_dir):
+    """Both ways of evaluating the deferred MLP's direction term: on the coarse pixel grid (the default, where the
+    browser has float render targets, as SwiftShader has) and per pixel (directionStride=0)."""
     from nerfbake.smerf.assets import SceneAssets
     from nerfbake.smerf.baked_render import read_test_frames, render_baked
     from nerfbake.viewer.browser import ViewerPage
@@ -30,9 +32,11 @@ def test_smerf_view_matches_the_python_renderer(which, tiny_assets_dir):
     scene = SceneAssets.open(assets)
     cam = read_test_frames(scene.root / "sm_000" / "test_frames.json", w, h)[0]
     ref = np.round(render_baked(scene, cam) * 255)
-    with ViewerPage(assets) as page:
+    with ViewerPage(assets, query="" if stride is None else f"directionStride={stride}") as page:
         img = page.render_test_view(0, w, h)
         assert page.errors == []
+        grid = page.state()["directionGrid"]
+    assert grid == (None if stride == 0 else {"stride": 8, "format": "RGBA32F"})
     assert ref.std() > 5  # the view shows something
     assert psnr(img, ref) >= 35
 

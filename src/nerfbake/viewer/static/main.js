@@ -1,6 +1,7 @@
 // nerfbake viewer: one page for SMERF asset directories and PlenOctree .npz files, served by `nerfbake view`.
 // URL parameters: quality=phone|low|medium|high, s=W,H (render size), mouseMode=orbit|fly, vfovy, near, up=x|y|z|-z,
-// submodelCacheSize, stepMult, exposure, view=I (a test view), benchmark=1, frameMult=K, maxTextureSize.
+// submodelCacheSize, stepMult, exposure, view=I (a test view), benchmark=1, frameMult=K, maxTextureSize,
+// directionStride=N (SMERF: the deferred MLP's direction term on every N-th pixel, interpolated; 0 = every pixel).
 import {RenderTarget, ViewerError, createContext, fetchJSON, finish, rendererName} from './gl.js';
 import {Controls, UP_AXES, lookRotation, viewForward} from './controls.js';
 import {OctreeScene} from './octree.js';
@@ -60,6 +61,7 @@ class App {
       this.scene = await SmerfScene.open(this.gl, info.base, info.entry, {
         cacheSize: params.has('submodelCacheSize') ? Number(params.get('submodelCacheSize')) : (this.quality === 'phone' ? 0 : 4),
         stepMult: Number(params.get('stepMult') || 1),
+        directionStride: params.has('directionStride') ? Number(params.get('directionStride')) : undefined,
         visibilityDelay: {high: 0.99, medium: 0.95, low: 0.8, phone: 0.8}[this.quality],
         onProgress,
       });

@@ -3,7 +3,7 @@
 // submodels, and the deferred MLP interpolated at the camera position on the CPU every frame.
 import {ViewerError, bindTextures, mat3ColumnMajor, byteArrayTexture, createProgram, drawFullscreen, fetchBytes, fetchJSON,
         texture3D} from './gl.js';
-import {mlpLayout, packMlp, smerfFragment} from './smerf_shader.js';
+import {mlpLayout, packMlp, smerfDirectionFragment, smerfFragment} from './smerf_shader.js';
 
 // viewer frame <-> training frame: (x', y', z') = (-x, z, y); its own inverse
 const toTrain = (p) => [-p[0], p[2], p[1]];
@@ -48,6 +48,8 @@ export class SmerfScene {
     this.programs = new Map();
     this.onProgress = options.onProgress || (() => {});
     this.mlpTex = gl.createTexture();
+    // the deferred MLP's direction term on a grid of every directionStride-th pixel (0: per pixel)
+    this.directionGrid = DirectionGrid.supported(gl, options.directionStride ?? 8);
   }
 
   get k() { return Math.round(Math.cbrt(this.first.num_submodels || 1)); }
@@ -128,6 +130,8 @@ export class SmerfScene {
       loading: this.loading, hostCache: [...this.hostCache.keys()], cacheSize: this.cacheSize,
       fetches: this.stats.fetches, evictions: this.stats.evictions, uploads: this.stats.uploads,
       numSubmodels: this.params.length,
+      // the direction-grid pass as last drawn (null: the direction term per pixel)
+      directionGrid: this.directionGrid && this.directionGrid.key ? {stride: this.directionGrid.stride, format: this.directionGrid.format} : null,
     };
   }
 
@@ -137,18 +141,26 @@ export class SmerfScene {
     const p = sm.params;
     const gl = this.gl;
     const layout = mlpLayout(this.mlp.inDim, this.mlp.hidden);
+    const grid = this.directionGrid && layout.q <= gl.getParameter(gl.MAX_DRAW_BUFFERS) ? this.directionGrid : null;
     const defs = {
       IN_DIM: layout.inDim, HIDDEN: layout.hidden, COARSE_SUM: (p.merge_features_combine_op || 'coarse_sum') === 'coarse_sum' ? 1 : 0,
       FEATURE_GATING: p.feature_gating === false ? 0 : 1, ACTIVATION_ELU: (p.activation || 'elu') === 'elu' ? 1 : 0,
       USE_EXPOSURE: this.exposure(p) ? 1 : 0, MLP_VEC4S: layout.vec4s,
       // the weights as a uniform block where it fits (every WebGL2 device allows 16 KiB: hidden widths up to 32)
       MLP_IN_UBO: layout.vec4s * 16 <= gl.getParameter(gl.MAX_UNIFORM_BLOCK_SIZE) ? 1 : 0,
+      DIR_GRID: grid ? 1 : 0, DIR_STRIDE: grid ? grid.stride : 0,
     };
     const key = JSON.stringify(defs);
     if (!this.programs.has(key)) {
-      const prog = createProgram(gl, smerfFragment(defs));
-      if (defs.MLP_IN_UBO) gl.uniformBlockBinding(prog.prog, gl.getUniformBlockIndex(prog.prog, 'MlpBlock'), 0);
-      this.programs.set(key, {prog, layout, ubo: defs.MLP_IN_UBO});
+      const withMlp = (source) => {
+        const prog = createProgram(gl, source);
+        if (defs.MLP_IN_UBO) gl.uniformBlockBinding(prog.prog, gl.getUniformBlockIndex(prog.prog, 'MlpBlock'), 0);
+        return prog;
+      };
+      this.programs.set(key, {
+        prog: withMlp(smerfFragment(defs)), layout, ubo: defs.MLP_IN_UBO,
+        direction: grid ? withMlp(smerfDirectionFragment(defs)) : null,
+      });
     }
     return this.programs.get(key);
   }
@@ -175,18 +187,10 @@ export class SmerfScene {
     gl.texParameteri(gl.TEXTURE_2D, gl.TEXTURE_MAG_FILTER, gl.NEAREST);
   }
 
-  // camera: {position, rotation (3x3 row-major array of rows), invProjection (16, column-major)}
-  draw(camera, target, width, height, jitter = [0, 0]) {
-    if (this.active < 0) return false;
+  // The camera uniforms both passes share (smerf_shader.js: CAMERA_GLSL).
+  setCamera(u, camera, sm, width, height, jitter) {
     const gl = this.gl;
-    const sm = this.slots[this.active];
-    const p = sm.params;
-    const program = this.program(sm);
-    const prog = program.prog;
-    gl.useProgram(prog.prog);
-    this.uploadMlp(sm.idx, camera.position, program);
-    const u = prog.uniforms;
-    const scale = p.submodel_scale;
+    const scale = sm.params.submodel_scale;
     const c = this.center(sm.idx);
     gl.uniform2f(u.uViewport, width, height);
     gl.uniform2f(u.uPixelOffset, jitter[0], jitter[1]);
@@ -194,6 +198,29 @@ export class SmerfScene {
     gl.uniformMatrix3fv(u.uRotation, false, mat3ColumnMajor(camera.rotation));
     gl.uniformMatrix4fv(u.uInvProjection, false, camera.invProjection);
     gl.uniform1f(u.uScale, scale);
+  }
+
+  // camera: {position, rotation (3x3 row-major array of rows), invProjection (16, column-major)}
+  draw(camera, target, width, height, jitter = [0, 0]) {
+    if (this.active < 0) return false;
+    const gl = this.gl;
+    const sm = this.slots[this.active];
+    const p = sm.params;
+    const program = this.program(sm);
+    this.uploadMlp(sm.idx, camera.position, program);
+    if (program.direction) {
+      // pass 1: the deferred MLP's direction term on the coarse pixel grid
+      const grid = this.directionGrid.resize(width, height, program.layout.q);
+      gl.useProgram(program.direction.prog);
+      this.setCamera(program.direction.uniforms, camera, sm, width, height, jitter);
+      bindTextures(gl, program.direction, [['tMlp', gl.TEXTURE_2D, this.mlpTex]]);
+      drawFullscreen(gl, grid, grid.width, grid.height);
+    }
+    const prog = program.prog;
+    gl.useProgram(prog.prog);
+    const u = prog.uniforms;
+    this.setCamera(u, camera, sm, width, height, jitter);
+    if (program.direction) gl.uniform2f(u.uDirectionGrid, this.directionGrid.width, this.directionGrid.height);
     gl.uniform1f(u.uStepMult, this.stepMult);
     gl.uniform1f(u.uVisibilityDelay, this.visibilityDelay);
     gl.uniform3fv(u.uBackground, this.background);
@@ -213,7 +240,7 @@ export class SmerfScene {
     bindTextures(gl, prog, [
       ['tBlockIndices', T3, sm.tex.blockIndices], ['tAtlasA', T3, sm.tex.atlasA], ['tAtlasB', T3, sm.tex.atlasB],
       ['tPlaneA', TA, sm.tex.planeA], ['tPlaneB', TA, sm.tex.planeB], ['tGrid8', T3, sm.tex.grid8],
-      ['tMlp', gl.TEXTURE_2D, this.mlpTex],
+      ['tMlp', gl.TEXTURE_2D, this.mlpTex], ['tDirection', TA, this.directionGrid ? this.directionGrid.tex : null],
     ]);
     drawFullscreen(gl, target, width, height);
     return true;
@@ -228,6 +255,60 @@ export class SmerfScene {
 
   // bytes of the resident submodels' textures as allocated (RGBA8 where repacked)
   gpuBytes() { return this.slots.filter((s) => s).reduce((a, s) => a + s.textureBytes, 0); }
+}
+
+// The direction-grid pass's target (smerf_shader.js: smerfDirectionFragment): one float texel per stride x stride
+// pixels and one more at the far edges, so that every pixel lies between texel centres; one layer per vec4 of the
+// first layer's hidden units, each a colour attachment of one draw. It needs float render targets; where the
+// browser has none, supported() returns null and the shader evaluates the direction term per pixel.
+class DirectionGrid {
+  static supported(gl, stride) {
+    if (!stride) return null;
+    const floatTargets = gl.getExtension('EXT_color_buffer_float');
+    // 32-bit floats where they can also be filtered; 16-bit floats (always filterable) otherwise
+    const format = floatTargets && gl.getExtension('OES_texture_float_linear') ? 'RGBA32F'
+      : (floatTargets || gl.getExtension('EXT_color_buffer_half_float')) ? 'RGBA16F' : null;
+    return format ? new DirectionGrid(gl, stride, format) : null;
+  }
+
+  constructor(gl, stride, format) {
+    this.gl = gl;
+    this.stride = stride;
+    this.format = format;
+    this.tex = null;
+    this.fbo = gl.createFramebuffer();
+    this.key = '';
+  }
+
+  // (Re)allocate for a frame of width x height and `layers` vec4s; returns this (a target for drawFullscreen).
+  resize(width, height, layers) {
+    const gl = this.gl;
+    const w = Math.floor((width - 1) / this.stride) + 2, h = Math.floor((height - 1) / this.stride) + 2;
+    const key = `${w}x${h}x${layers}`;
+    if (key === this.key) return this;
+    if (this.tex) gl.deleteTexture(this.tex);
+    this.tex = gl.createTexture();
+    gl.bindTexture(gl.TEXTURE_2D_ARRAY, this.tex);
+    gl.texStorage3D(gl.TEXTURE_2D_ARRAY, 1, gl[this.format], w, h, layers);
+    for (const [k, v] of [[gl.TEXTURE_MIN_FILTER, gl.LINEAR], [gl.TEXTURE_MAG_FILTER, gl.LINEAR],
+                          [gl.TEXTURE_WRAP_S, gl.CLAMP_TO_EDGE], [gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE]]) {
+      gl.texParameteri(gl.TEXTURE_2D_ARRAY, k, v);
+    }
+    gl.bindFramebuffer(gl.FRAMEBUFFER, this.fbo);
+    const attachments = [];
+    for (let j = 0; j < layers; j++) {
+      gl.framebufferTextureLayer(gl.FRAMEBUFFER, gl.COLOR_ATTACHMENT0 + j, this.tex, 0, j);
+      attachments.push(gl.COLOR_ATTACHMENT0 + j);
+    }
+    gl.drawBuffers(attachments);
+    const status = gl.checkFramebufferStatus(gl.FRAMEBUFFER);
+    gl.bindFramebuffer(gl.FRAMEBUFFER, null);
+    if (status !== gl.FRAMEBUFFER_COMPLETE) throw new ViewerError(`direction grid: ${this.format} framebuffer incomplete (0x${status.toString(16)}); open the viewer with directionStride=0`);
+    this.width = w;
+    this.height = h;
+    this.key = key;
+    return this;
+  }
 }
 
 // One submodel's textures. The baked arrays are repacked so that a ray step's fetches come together: the atlas as

@@ -34,22 +34,43 @@ export function packMlp(layout, weights) {
   return buf;
 }
 
-function mlpSource(defs) {
+// The deferred MLP's inputs in the trained order, split the way its first layer is split: what the ray gathered
+// (colour, features, coarse colour and features) and the view direction with its sin/cos encoding.
+function mlpInputs(defs) {
+  const ray = ['e0.x', 'e0.y', 'e0.z', 'e1.x', 'e1.y', 'e1.z', 'e1.w'];
+  if (defs.COARSE_SUM) ray.push('e2.x', 'e2.y', 'e2.z', 'e3.x', 'e3.y', 'e3.z', 'e3.w');
+  const dir = ['v.x', 'v.y', 'v.z'];
+  for (const f of ['s', 'c']) for (let k = 0; k < 4; k++) dir.push(`${f}${k}.x`, `${f}${k}.y`, `${f}${k}.z`);
+  return {ray, dir};
+}
+
+// GLSL pieces of the deferred MLP (SNeRG mode; kernels and biases were interpolated at the camera position on the
+// CPU). The first layer is bias + W_ray x_ray + W_dir x_dir; the direction part with the bias is a smooth function
+// of the pixel, which the direction-grid pass (smerfDirectionFragment) evaluates on a coarse screen grid.
+function mlpPieces(defs) {
   const L = mlpLayout(defs.IN_DIM, defs.HIDDEN);
   const vec = (i) => (defs.MLP_IN_UBO ? `uMlp[${i}]` : `texelFetch(tMlp, ivec2(${i % 1024}, ${Math.floor(i / 1024)}), 0)`);
   // A 4x4 block times a vec4 as the sum of its columns scaled by the inputs (no mat4 is assembled); the first layer
   // takes its inputs by name, so the padding to a multiple of 4 costs nothing.
   const mul = (i, x) => `${vec(i)} * ${x}.x + ${vec(i + 1)} * ${x}.y + ${vec(i + 2)} * ${x}.z + ${vec(i + 3)} * ${x}.w`;
-  // the inputs in the trained order: colour, features, (coarse colour, coarse features,) direction, sin, cos
-  const x = ['e0.x', 'e0.y', 'e0.z', 'e1.x', 'e1.y', 'e1.z', 'e1.w'];
-  if (defs.COARSE_SUM) x.push('e2.x', 'e2.y', 'e2.z', 'e3.x', 'e3.y', 'e3.z', 'e3.w');
-  x.push('v.x', 'v.y', 'v.z');
-  for (const f of ['s', 'c']) for (let k = 0; k < 4; k++) x.push(`${f}${k}.x`, `${f}${k}.y`, `${f}${k}.z`);
-  if (x.length !== L.inDim) throw new Error(`MLP input layout has ${x.length} entries, the weights ${L.inDim}`);
+  const {ray, dir} = mlpInputs(defs);
+  if (ray.length + dir.length !== L.inDim) throw new Error(`MLP input layout has ${ray.length + dir.length} entries, the weights ${L.inDim}`);
+  // column c of the first layer's input block (c >> 2, j) multiplies input c
+  const first = (names, offset, j) => names.map((name, i) => {
+    const c = offset + i;
+    return `${vec(L.k0 + 4 * ((c >> 2) * L.q + j) + (c & 3))} * ${name}`;
+  }).join(' + ');
+  const directionTerm = (j) => `${vec(L.bias[0] + j)} + ${first(dir, ray.length, j)}`;
+  // sin/cos of 2v, 4v, 8v by the double-angle rules: 2 trigonometric calls instead of 8 (|v| = 1, so the rounding
+  // error grows to a few 1e-7 at 8v)
+  const encoding = `  vec3 s0 = sin(v), c0 = cos(v);
+  vec3 s1 = 2.0 * s0 * c0, c1 = 1.0 - 2.0 * s0 * s0;
+  vec3 s2 = 2.0 * s1 * c1, c2 = 1.0 - 2.0 * s1 * s1;
+  vec3 s3 = 2.0 * s2 * c2, c3 = 1.0 - 2.0 * s2 * s2;`;
   const lines = [];
-  for (let j = 0; j < L.q; j++) {  // column c of the input block (c >> 2, j) multiplies input c
-    const terms = x.map((name, c) => `${vec(L.k0 + 4 * ((c >> 2) * L.q + j) + (c & 3))} * ${name}`);
-    lines.push(`  vec4 h${j} = act4(${vec(L.bias[0] + j)} + ${terms.join(' + ')});`);
+  for (let j = 0; j < L.q; j++) {
+    const dirPart = defs.DIR_GRID ? `texture(tDirection, vec3(dirUv, ${j}.0))` : directionTerm(j);
+    lines.push(`  vec4 h${j} = act4(${dirPart} + ${first(ray, 0, j)});`);
   }
   for (let j = 0; j < L.q; j++) {
     const terms = [...Array(L.q).keys()].map((i) => mul(L.k1 + 4 * (i * L.q + j), `h${i}`));
@@ -57,21 +78,36 @@ function mlpSource(defs) {
   }
   const out = [...Array(L.q).keys()].map((i) => mul(L.k2 + 4 * i, `u${i}`));
   lines.push(`  vec4 o = ${vec(L.bias[2])} + ${out.join(' + ')};`);
-  return `// The deferred MLP (SNeRG mode): kernels and biases were interpolated at the camera position on the CPU.
-vec3 deferredMlp(vec3 cIn, vec4 feat, vec3 coarseColor, vec4 coarseFeat, vec3 v) {
+  const weights = defs.MLP_IN_UBO ? 'layout(std140) uniform MlpBlock { vec4 uMlp[MLP_VEC4S]; };' : 'uniform sampler2D tMlp;';
+  const mlp = `// The deferred MLP; dirUv: where this pixel's first-layer direction term lies in tDirection (DIR_GRID)
+vec3 deferredMlp(vec3 cIn, vec4 feat, vec3 coarseColor, vec4 coarseFeat, vec3 v, vec2 dirUv) {
   vec4 e0 = expo(vec4(cIn, 0.0)), e1 = expo(feat), e2 = expo(vec4(coarseColor, 0.0)), e3 = expo(coarseFeat);
-  // sin/cos of 2v, 4v, 8v by the double-angle rules: 2 trigonometric calls instead of 8 (|v| = 1, so the
-  // rounding error grows to a few 1e-7 at 8v)
-  vec3 s0 = sin(v), c0 = cos(v);
-  vec3 s1 = 2.0 * s0 * c0, c1 = 1.0 - 2.0 * s0 * s0;
-  vec3 s2 = 2.0 * s1 * c1, c2 = 1.0 - 2.0 * s1 * s1;
-  vec3 s3 = 2.0 * s2 * c2, c3 = 1.0 - 2.0 * s2 * s2;
+${defs.DIR_GRID ? '' : encoding}
 ${lines.join('\n')}
   return sigmoid3(o.xyz);
 }`;
+  return {L, weights, encoding, directionTerm, mlp};
 }
 
-export function smerfFragment(defs) {
+// The camera uniforms and the pixel -> ray map, shared by the march and the direction-grid pass.
+const CAMERA_GLSL = `uniform vec2 uViewport;      // render-target size in pixels
+uniform vec2 uPixelOffset;   // sub-pixel jitter for progressive refinement (pixels)
+uniform vec3 uOrigin;        // camera centre in the submodel frame
+uniform mat3 uRotation;      // camera-to-viewer rotation (three.js camera, looks down -z)
+uniform mat4 uInvProjection;
+uniform float uScale;        // submodel_scale
+
+// The ray through pixel position pix, scaled to reach the near plane at t = 1 (submodel frame).
+vec3 pixelRay(vec2 pix) {
+  vec2 ndc = pix / uViewport * 2.0 - 1.0;
+  vec4 q4 = uInvProjection * vec4(ndc, -1.0, 1.0);
+  return uScale * (uRotation * (q4.xyz / q4.w));
+}
+
+// A ray's unit direction in the training frame, which the deferred MLP was trained on (viewer -> training: W v).
+vec3 trainingDirection(vec3 ray) { return normalize(vec3(-ray.x, ray.z, ray.y)); }`;
+
+function header(defs) {
   const lines = Object.entries(defs).map(([k, v]) => `#define ${k} ${v}`).join('\n');
   return `#version 300 es
 precision highp float;
@@ -79,15 +115,38 @@ precision highp int;
 precision highp sampler3D;
 precision highp sampler2DArray;
 precision highp sampler2D;
-${lines}
+${lines}`;
+}
+
+// The direction-grid pass: the deferred MLP's first-layer direction term (with its bias) at every DIR_STRIDE-th
+// pixel of the frame, one vec4 of hidden units per layer of the target array (smerf.js: DirectionGrid). The march
+// pass interpolates it bilinearly instead of evaluating 27 of the layer's 34 inputs and 6 sin/cos per pixel; across
+// DIR_STRIDE pixels the direction turns by well under a degree, so the interpolation error is far below a colour
+// level (the browser-vs-Python test holds it to its threshold).
+export function smerfDirectionFragment(defs) {
+  const m = mlpPieces(defs);
+  const outs = [...Array(m.L.q).keys()].map((j) => `layout(location = ${j}) out vec4 dir${j};`).join('\n');
+  const writes = [...Array(m.L.q).keys()].map((j) => `  dir${j} = ${m.directionTerm(j)};`).join('\n');
+  return `${header(defs)}
+${outs}
+${CAMERA_GLSL}
+${m.weights}
+
+void main() {
+  vec2 pix = (gl_FragCoord.xy - 0.5) * float(DIR_STRIDE) + 0.5 + uPixelOffset;
+  vec3 v = trainingDirection(pixelRay(pix));
+${m.encoding}
+${writes}
+}
+`;
+}
+
+export function smerfFragment(defs) {
+  const m = mlpPieces(defs);
+  return `${header(defs)}
 out vec4 fragColor;
 
-uniform vec2 uViewport;      // render-target size in pixels
-uniform vec2 uPixelOffset;   // sub-pixel jitter for progressive refinement (pixels)
-uniform vec3 uOrigin;        // camera centre in the submodel frame
-uniform mat3 uRotation;      // camera-to-viewer rotation (three.js camera, looks down -z)
-uniform mat4 uInvProjection;
-uniform float uScale;        // submodel_scale
+${CAMERA_GLSL}
 uniform float uStepMult;
 uniform float uVisibilityDelay;
 uniform vec3 uBackground;
@@ -111,7 +170,8 @@ uniform sampler3D tAtlasB;         // b, features 0..2
 uniform sampler2DArray tPlaneA;    // triplane density, r, g, b
 uniform sampler2DArray tPlaneB;    // triplane features 0..3
 uniform sampler3D tGrid8;          // factor-8 distance (cells) and occupancy bits
-${defs.MLP_IN_UBO ? 'layout(std140) uniform MlpBlock { vec4 uMlp[MLP_VEC4S]; };' : 'uniform sampler2D tMlp;'}
+${m.weights}
+${defs.DIR_GRID ? 'uniform sampler2DArray tDirection;  // the direction-grid pass\'s output\nuniform vec2 uDirectionGrid;       // its size in texels' : ''}
 
 const float INF = 1.0e25;
 
@@ -247,13 +307,10 @@ vec4 expo(vec4 x) {
 #endif
 }
 
-${mlpSource(defs)}
+${m.mlp}
 
 void main() {
-  vec2 pix = gl_FragCoord.xy + uPixelOffset;
-  vec2 ndc = pix / uViewport * 2.0 - 1.0;
-  vec4 q4 = uInvProjection * vec4(ndc, -1.0, 1.0);
-  vec3 d = uScale * (uRotation * (q4.xyz / q4.w));  // to the near plane: the ray starts at t = 1
+  vec3 d = pixelRay(gl_FragCoord.xy + uPixelOffset);  // to the near plane: the ray starts at t = 1
   vec3 viewDir = d;
   vec3 o = uOrigin;
   d = mix(d, vec3(1.0e-9), lessThan(abs(d), vec3(1.0e-9)));
@@ -401,8 +458,9 @@ void main() {
     tc += stepLen;
   }
   vec3 cIn = color + vis * uBackground;
-  vec3 v = normalize(vec3(-viewDir.x, viewDir.z, viewDir.y));  // viewer frame -> training frame (W v)
-  vec3 rgb = color + deferredMlp(cIn, feat, coarseColor, coarseFeat, v);
+  vec3 v = trainingDirection(viewDir);
+${defs.DIR_GRID ? '  vec2 dirUv = ((gl_FragCoord.xy - 0.5) / float(DIR_STRIDE) + 0.5) / uDirectionGrid;' : '  vec2 dirUv = vec2(0.0);'}
+  vec3 rgb = color + deferredMlp(cIn, feat, coarseColor, coarseFeat, v, dirUv);
   fragColor = vec4(clamp(rgb, 0.0, 1.0), 1.0);
 }
 `;
