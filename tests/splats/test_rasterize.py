@@ -1,12 +1,17 @@
-"""The torch splat rasteriser against closed forms: one Gaussian's footprint, two Gaussians' compositing order,
-and gradients against finite differences."""
+"""The splat rasterisers (Warp kernels and the torch reference) against closed forms: one Gaussian's footprint, two
+Gaussians' compositing order; the reference's gradients against finite differences, the kernels' against the
+reference's and against finite differences of their own."""
 import math
 
 import numpy as np
 import torch
 
 from nerfbake.data.cameras import Camera
-from nerfbake.splats.rasterize import LOW_PASS, rasterize
+import pytest
+
+from nerfbake.splats.rasterize import LOW_PASS, rasterize, rasterize_reference
+
+BOTH = pytest.mark.parametrize("raster", [rasterize, rasterize_reference], ids=["warp", "reference"])
 
 
 def camera(width=32, height=24, f=30.0):
@@ -27,28 +32,30 @@ def one(means, scales, opacity, rgb):
             torch.log(o / (1 - o)), sh)
 
 
-def test_one_gaussian_draws_its_projected_footprint():
+@BOTH
+def test_one_gaussian_draws_its_projected_footprint(raster):
     cam = camera()
     sigma, opacity = 0.05, 0.8
-    img = rasterize(*one([[0.0, 0.0, 0.0]], [[sigma] * 3], [opacity], [[1.0, 0.0, 0.0]]), cam, (0.0, 0.0, 1.0))
+    img = raster(*one([[0.0, 0.0, 0.0]], [[sigma] * 3], [opacity], [[1.0, 0.0, 0.0]]), cam, (0.0, 0.0, 1.0))
     var_px = (cam.fx * sigma / 5.0) ** 2 + LOW_PASS
     ys, xs = np.mgrid[0:24, 0:32] + 0.5
     r2 = (xs - 16) ** 2 + (ys - 12) ** 2
     alpha = opacity * np.exp(-0.5 * r2 / var_px)
     alpha = np.where(alpha >= 1 / 255, alpha, 0.0)
     want = np.stack([alpha, np.zeros_like(alpha), 1 - alpha], -1)
-    np.testing.assert_allclose(img.numpy(), want, atol=1e-9)
+    np.testing.assert_allclose(img.numpy(), want, atol=1e-6)
 
 
-def test_nearer_gaussians_are_composited_first_and_offscreen_ones_skipped():
+@BOTH
+def test_nearer_gaussians_are_composited_first_and_offscreen_ones_skipped(raster):
     cam = camera()
     args = one([[0.0, 0.0, 0.5], [0.0, 0.0, -0.5], [0.0, 0.0, 9.0], [50.0, 0.0, 0.0]], [[0.3] * 3] * 4,
                [0.6, 0.9, 0.9, 0.9], [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0], [0.0, 0.0, 0.0]])
-    centre = rasterize(*args, cam, (0.0, 0.0, 0.0))[12, 16].numpy()
+    centre = raster(*args, cam, (0.0, 0.0, 0.0))[12, 16].numpy()
     d1, d2 = 4.5, 5.5  # pixel (16, 12) is 0.5 px off the axis in x and y; the red one is nearer; the one behind the camera and the one off screen add nothing
     a1 = 0.6 * math.exp(-0.5 * 0.5 / ((cam.fx * 0.3 / d1) ** 2 + LOW_PASS))
     a2 = 0.9 * math.exp(-0.5 * 0.5 / ((cam.fx * 0.3 / d2) ** 2 + LOW_PASS))
-    np.testing.assert_allclose(centre, [a1, (1 - a1) * a2, 0.0], atol=1e-9)
+    np.testing.assert_allclose(centre, [a1, (1 - a1) * a2, 0.0], atol=1e-6)
 
 
 def test_gradients_match_finite_differences():
@@ -63,28 +70,71 @@ def test_gradients_match_finite_differences():
     weights = torch.rand(10, 12, 3, generator=gen, dtype=torch.float64)
 
     def loss(*p):
-        return (rasterize(*p, cam, (0.2, 0.3, 0.4)) * weights).sum()
+        return (rasterize_reference(*p, cam, (0.2, 0.3, 0.4)) * weights).sum()
 
     assert torch.autograd.gradcheck(loss, params, eps=1e-6, atol=1e-5, rtol=1e-3)
 
 
-def test_fitting_raises_the_psnr_of_the_views_it_fits(tiny_tree, tiny_scene):
-    """Leaf splats of a tree, fitted to two training photos through the rasteriser's autograd: both get closer."""
-    from nerfbake.data.formats import load_dataset
-    from nerfbake.eval.metrics import psnr
-    from nerfbake.octree.io import load_tree
-    from nerfbake.splats.fit import FitConfig, fit_gaussians
-    from nerfbake.splats.from_tree import gaussians_from_tree
-    from nerfbake.splats.rasterize import render_gaussians
+def random_scene(n, seed=0):
+    """n Gaussians in front of camera(): a mix of faint and nearly opaque ones (so that the 0.99 clamp, the 1/255 cut
+    and the stop at transmittance 1e-4 all occur), colours from degree-1 SH."""
+    gen = torch.Generator().manual_seed(seed)
+    means = torch.randn(n, 3, generator=gen) * 0.6
+    log_scales = torch.log(torch.rand(n, 3, generator=gen) * 0.15 + 0.03)
+    quats = torch.randn(n, 4, generator=gen)
+    logits = torch.randn(n, generator=gen) * 3 + 1
+    sh = torch.randn(n, 3, 4, generator=gen) * 0.3
+    return [means, log_scales, quats, logits, sh]
 
-    ds = load_dataset(tiny_scene)
-    views = [(ds.frames[i].camera, ds.image(i)[..., :3]) for i in ds.split("train")[:2]]
-    g = gaussians_from_tree(load_tree(tiny_tree), sh_degree=1, max_splats=3000)
 
-    def score(gs):
-        return [float(psnr(np.clip(render_gaussians(gs, cam).numpy(), 0, 1), img)) for cam, img in views]
+def test_warp_kernels_match_the_reference_in_picture_and_gradients():
+    cam = camera(70, 50, 60.0)
+    scene = random_scene(400)
+    weights = torch.rand(50, 70, 3, generator=torch.Generator().manual_seed(1))
+    grads, images = [], []
+    for raster in (rasterize, rasterize_reference):
+        params = [p.clone().requires_grad_() for p in scene]
+        img = raster(*params, cam, (0.2, 0.3, 0.4))
+        (img * weights).sum().backward()
+        images.append(img.detach())
+        grads.append([p.grad for p in params])
+    assert float(images[1].std()) > 0.1  # the picture shows the Gaussians
+    np.testing.assert_allclose(images[0].numpy(), images[1].numpy(), atol=2e-6)
+    for name, a, b in zip(("means", "log_scales", "quats", "opacity_logits", "sh"), *grads):
+        assert float(b.abs().max()) > 0.1, name
+        np.testing.assert_allclose(a.numpy(), b.numpy(), atol=2e-4 * float(b.abs().max()), err_msg=name)
 
-    before = score(g)
-    fitted, history = fit_gaussians(g, views, FitConfig(steps=40, crop=32))
-    after = score(fitted)
-    assert len(history) == 40 and all(a > b + 0.5 for a, b in zip(after, before)), (before, after)
+
+def test_warp_compositing_gradients_match_finite_differences():
+    """The kernels' own backward (screen-space inputs) against central differences of their forward. The splats are
+    wide and the image small, so that no pixel crosses the 1/255 cut, the 0.99 clamp or the transmittance stop within
+    a difference (each is a step in the picture, where a difference means nothing)."""
+    from nerfbake.kernels.splat_raster import composite
+
+    gen = torch.Generator().manual_seed(3)
+    n, w, h = 5, 20, 18
+    xy = torch.rand(n, 2, generator=gen) * torch.tensor([w, h])
+    var = torch.rand(n, 2, generator=gen) * 60 + 60  # px^2
+    corr = (torch.rand(n, generator=gen) - 0.5) * 0.8
+    cov = torch.stack([var[:, 0], corr * var.prod(1).sqrt(), corr * var.prod(1).sqrt(), var[:, 1]], -1).reshape(n, 2, 2)
+    inv = torch.linalg.inv(cov)
+    conic = torch.stack([inv[:, 0, 0], inv[:, 0, 1], inv[:, 1, 1]], -1)
+    inputs = [xy, conic, torch.rand(n, generator=gen) * 0.5 + 0.3, torch.rand(n, 3, generator=gen)]
+    radius = torch.full((n,), 100.0)
+    weights = torch.rand(h, w, 3, generator=gen, dtype=torch.float64)
+
+    def loss(*x):
+        return (composite(*x, radius, w, h, (0.2, 0.3, 0.4)).double() * weights).sum()  # summed in float64
+
+    params = [x.clone().requires_grad_() for x in inputs]
+    loss(*params).backward()
+    for which, eps in ((0, 1e-2), (1, 5e-4), (2, 1e-3), (3, 1e-3)):
+        grad = params[which].grad.reshape(-1)
+        assert float(grad.abs().max()) > 1e-2, which
+        for i in range(grad.numel()):
+            def at(delta):
+                x = [t.clone() for t in inputs]
+                x[which].view(-1)[i] += delta
+                return float(loss(*x))
+            fd = (at(eps) - at(-eps)) / (2 * eps)
+            assert abs(fd - float(grad[i])) <= 1e-2 * abs(fd) + 5e-3, (which, i, fd, float(grad[i]))

@@ -1,26 +1,26 @@
-"""The 3DGS rasteriser in plain torch: the reference that scores exported splats and that faster kernels are checked
-against; differentiable through autograd.
+"""The 3DGS rasteriser: :func:`rasterize` (the projection in torch, the per-pixel compositing by the Warp kernels of
+``kernels/splat_raster.py``), which scores exported splats and fits them, and :func:`rasterize_reference`, the
+same in plain torch, which the kernels are checked against; both differentiable through autograd.
 
 Per Gaussian: the mean into the camera (OpenGL axes: the camera looks down -Z, image rows go down), the 3D
 covariance R S S^T R^T projected with the perspective Jacobian (EWA splatting) plus 0.3 px^2 on the diagonal (the
 reference's low-pass), the colour ``max(SH(d) . k + 0.5, 0)`` for the direction from the camera to the mean. Per
 pixel: ``alpha = min(0.99, opacity * exp(-0.5 d^T Sigma^-1 d))`` (pixel centres at +0.5), alphas under 1/255 skipped,
-front-to-back compositing by the means' depth, the background behind. Pixels are processed in 16 x 16 tiles, each
-against the Gaussians whose 3-sigma box touches it.
+front-to-back compositing by the means' depth, stopping before the Gaussian that would take the transmittance under
+1e-4 (as the reference code does), the background behind. Pixels are processed in 16 x 16 tiles, each against the
+Gaussians whose 3-sigma box touches it.
 """
 from __future__ import annotations
 
 import torch
 
 from nerfbake.data.cameras import Camera
+from nerfbake.kernels.splat_raster import MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE, TILE, composite
 from nerfbake.render.sh import sh_basis
 from nerfbake.splats.gaussians import FIELDS
 
-TILE = 16
 NEAR = 0.01
 LOW_PASS = 0.3  # px^2 added to the projected covariance's diagonal
-MIN_ALPHA = 1.0 / 255.0
-MAX_ALPHA = 0.99
 
 
 def quaternion_matrix(q: torch.Tensor) -> torch.Tensor:
@@ -66,32 +66,45 @@ def splat_colors(means, sh, origin) -> torch.Tensor:
     return ((sh * sh_basis(degree, dirs)[:, None, :]).sum(-1) + 0.5).clamp_min(0.0)
 
 
-def rasterize(means, log_scales, quats, opacity_logits, sh, camera: Camera, background=(1.0, 1.0, 1.0)) -> torch.Tensor:
-    """(H, W, 3) image of the Gaussians (tensors as :class:`~nerfbake.splats.gaussians.Gaussians`, any float dtype)
-    from ``camera``; see the module docstring."""
-    dev, dt = means.device, means.dtype
+def screen_splats(means, log_scales, quats, opacity_logits, sh, camera: Camera):
+    """The Gaussians that touch the image, projected and sorted front to back: centres (K, 2), inverse covariances
+    (K, 2, 2), colours (K, 3), opacities (K,) and 3-sigma radii (K,); differentiable in every input."""
     W, H = camera.width, camera.height
     with torch.no_grad():  # which Gaussians touch the image: only those go through the differentiable path
         centre, _, depth, radius, visible = project(means, log_scales, quats, camera)
         seen = visible & (centre[:, 0] + radius >= 0) & (centre[:, 1] + radius >= 0) & (centre[:, 0] - radius < W) \
             & (centre[:, 1] - radius < H)
         keep = torch.nonzero(seen).squeeze(1)
-    if keep.numel() < means.shape[0]:
-        means, log_scales, quats, opacity_logits, sh = (t[keep] for t in (means, log_scales, quats, opacity_logits, sh))
-    centre, inv_cov, depth, radius, _ = project(means, log_scales, quats, camera)  # every one of them touches it
-    origin = torch.as_tensor(camera.c2w[:3, 3], dtype=dt, device=dev)
-    color = splat_colors(means, sh, origin)
-    opacity = torch.sigmoid(opacity_logits)
+        keep = keep[torch.argsort(depth[keep])]
+    means, log_scales, quats, opacity_logits, sh = (t[keep] for t in (means, log_scales, quats, opacity_logits, sh))
+    centre, inv_cov, _, radius, _ = project(means, log_scales, quats, camera)
+    origin = torch.as_tensor(camera.c2w[:3, 3], dtype=means.dtype, device=means.device)
+    return centre, inv_cov, splat_colors(means, sh, origin), torch.sigmoid(opacity_logits), radius.detach()
+
+
+def rasterize(means, log_scales, quats, opacity_logits, sh, camera: Camera, background=(1.0, 1.0, 1.0)) -> torch.Tensor:
+    """(H, W, 3) float32 image of the Gaussians (tensors as :class:`~nerfbake.splats.gaussians.Gaussians`) from
+    ``camera``, composited by the Warp kernels; see the module docstring."""
+    centre, inv_cov, color, opacity, radius = screen_splats(means, log_scales, quats, opacity_logits, sh, camera)
+    conic = torch.stack([inv_cov[:, 0, 0], inv_cov[:, 0, 1], inv_cov[:, 1, 1]], -1)
+    return composite(centre, conic, opacity, color, radius, camera.width, camera.height, background)
+
+
+def rasterize_reference(means, log_scales, quats, opacity_logits, sh, camera: Camera,
+                        background=(1.0, 1.0, 1.0)) -> torch.Tensor:
+    """:func:`rasterize` in plain torch, in the inputs' dtype (float64 for gradcheck)."""
+    dev, dt = means.device, means.dtype
+    W, H = camera.width, camera.height
+    centre, inv_cov, color, opacity, radius = screen_splats(means, log_scales, quats, opacity_logits, sh, camera)
     lo = (centre - radius[:, None]).detach()
     hi = (centre + radius[:, None]).detach()
-    order = torch.argsort(depth.detach())
     bg = torch.as_tensor(background, dtype=dt, device=dev)
     rows = []
     for ty in range(0, H, TILE):
         tiles = []
         for tx in range(0, W, TILE):
             w, h = min(TILE, W - tx), min(TILE, H - ty)
-            sel = order[(lo[order, 0] < tx + w) & (hi[order, 0] >= tx) & (lo[order, 1] < ty + h) & (hi[order, 1] >= ty)]
+            sel = torch.nonzero((lo[:, 0] < tx + w) & (hi[:, 0] >= tx) & (lo[:, 1] < ty + h) & (hi[:, 1] >= ty)).squeeze(1)
             if sel.numel() == 0:
                 tiles.append(bg.expand(h, w, 3))
                 continue
@@ -104,8 +117,9 @@ def rasterize(means, log_scales, quats, opacity_logits, sh, camera: Camera, back
                             + ic[None, :, 1, 1] * delta[..., 1] ** 2)
             alpha = (opacity[sel][None] * torch.exp(power.clamp(max=0.0))).clamp(max=MAX_ALPHA)
             alpha = torch.where(alpha >= MIN_ALPHA, alpha, torch.zeros_like(alpha))
-            trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], 1), 1)
-            weight = alpha * trans
+            after = torch.cumprod(1 - alpha, 1)  # transmittance behind each Gaussian
+            trans = torch.cat([torch.ones_like(alpha[:, :1]), after[:, :-1]], 1)
+            weight = torch.where(after >= MIN_TRANSMITTANCE, alpha * trans, torch.zeros_like(alpha))
             rgb = weight @ color[sel] + (1 - weight.sum(1, keepdim=True)) * bg
             tiles.append(rgb.reshape(h, w, 3))
         rows.append(torch.cat(tiles, 1))
