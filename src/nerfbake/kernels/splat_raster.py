@@ -46,6 +46,7 @@ def composite_forward(xy: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec3
                       color: wp.array(dtype=wp.vec3), tile_start: wp.array(dtype=wp.int32),
                       tile_splats: wp.array(dtype=wp.int32), width: int, tiles_x: int, background: wp.vec3,
                       first: int, out_rgb: wp.array(dtype=wp.vec3), out_end: wp.array(dtype=wp.int32)):
+    """One pixel's colour, and where in its tile's list compositing stopped (for the backward)."""
     pid = wp.tid() + first
     x = pid % width
     y = pid // width
@@ -78,6 +79,7 @@ def composite_backward(xy: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec
                        rgb: wp.array(dtype=wp.vec3), end: wp.array(dtype=wp.int32), grad_rgb: wp.array(dtype=wp.vec3),
                        first: int, g_xy: wp.array(dtype=wp.vec2), g_conic: wp.array(dtype=wp.vec3),
                        g_opacity: wp.array(dtype=float), g_color: wp.array(dtype=wp.vec3)):
+    """One pixel's share of every splat's gradient, summed into the g_* buffers (see the module docstring)."""
     pid = wp.tid() + first
     x = pid % width
     y = pid // width

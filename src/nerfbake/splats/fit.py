@@ -24,7 +24,7 @@ from nerfbake.splats.rasterize import rasterize
 @dataclass
 class FitConfig:
     steps: int = 300
-    crop: int = 64  # a crop of this many pixels a side per step (the whole view when it is smaller)
+    crop: int = 128  # a crop of this many pixels a side per step (the whole view when it is smaller)
     lr_means: float = 1.6e-4  # times the extent of the Gaussians' centres
     lr_scales: float = 5e-3
     lr_quats: float = 1e-3

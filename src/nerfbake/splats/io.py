@@ -122,3 +122,12 @@ def read_splat(path: str | Path) -> Gaussians:
     sh = ((rgba[:, :3] - 0.5) / SH_C0)[:, :, None]
     return Gaussians(rec["pos"].astype(np.float64), np.log(np.maximum(rec["scale"].astype(np.float64), 1e-30)),
                      (rec["rot"].astype(np.float64) - 128.0) / 128.0, np.log(alpha / (1 - alpha)), sh)
+
+
+def read_splats(path: str | Path) -> Gaussians:
+    """Gaussians from a ``.ply`` or ``.splat`` file, by its suffix."""
+    readers = {".ply": read_ply, ".splat": read_splat}
+    suffix = Path(path).suffix.lower()
+    if suffix not in readers:
+        raise SplatFileError(f"{path}: a splat file ends in .ply or .splat")
+    return readers[suffix](path)

@@ -16,20 +16,12 @@ import torch
 
 from nerfbake.data.cameras import Camera
 from nerfbake.kernels.splat_raster import MAX_ALPHA, MIN_ALPHA, MIN_TRANSMITTANCE, TILE, composite
+from nerfbake.render.rotations import quaternion_matrix
 from nerfbake.render.sh import sh_basis
 from nerfbake.splats.gaussians import FIELDS
 
 NEAR = 0.01
 LOW_PASS = 0.3  # px^2 added to the projected covariance's diagonal
-
-
-def quaternion_matrix(q: torch.Tensor) -> torch.Tensor:
-    """Rotation matrices (N, 3, 3) of w-first quaternions (N, 4) (normalised here)."""
-    w, x, y, z = torch.nn.functional.normalize(q, dim=-1).unbind(-1)
-    return torch.stack([
-        1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-        2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-        2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1).reshape(-1, 3, 3)
 
 
 def project(means, log_scales, quats, camera: Camera):

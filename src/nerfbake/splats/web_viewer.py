@@ -22,6 +22,7 @@ import numpy as np
 
 from nerfbake.data.cameras import Camera
 from nerfbake.errors import NerfbakeError
+from nerfbake.render.rotations import matrix_quaternion
 from nerfbake.viewer.browser import CHROMIUM_FLAGS, SOFTWARE_GL_FLAGS, chromium_path
 
 GSPLAT_DIST = Path(sys.prefix) / "npm" / "node_modules" / "gsplat" / "dist"
@@ -65,17 +66,8 @@ def gsplat_camera(camera: Camera) -> dict:
     """Our OpenGL camera as gsplat.js's position and (x, y, z, w) rotation quaternion, and its focal lengths."""
     if abs(camera.cx - camera.width / 2) > 0.5 or abs(camera.cy - camera.height / 2) > 0.5:
         raise ValueError("gsplat.js puts the principal point at the image centre; this camera's is elsewhere")
-    r = camera.c2w[:3, :3] @ np.diag([1.0, -1.0, -1.0])
-    q = np.zeros(4)  # x, y, z, w by Shepperd's method: from the largest of w^2, x^2, y^2, z^2, stable at half turns
-    if np.trace(r) >= np.diag(r).max():
-        s = 2.0 * np.sqrt(1.0 + np.trace(r))
-        q[:] = (r[2, 1] - r[1, 2]) / s, (r[0, 2] - r[2, 0]) / s, (r[1, 0] - r[0, 1]) / s, s / 4
-    else:
-        i = int(np.argmax(np.diag(r)))
-        j, k = (i + 1) % 3, (i + 2) % 3
-        s = 2.0 * np.sqrt(1.0 + r[i, i] - r[j, j] - r[k, k])
-        q[i], q[j], q[k], q[3] = s / 4, (r[j, i] + r[i, j]) / s, (r[k, i] + r[i, k]) / s, (r[k, j] - r[j, k]) / s
-    return {"position": camera.c2w[:3, 3].tolist(), "rotation": q.tolist(),
+    w, x, y, z = matrix_quaternion(camera.c2w[:3, :3] @ np.diag([1.0, -1.0, -1.0]))
+    return {"position": camera.c2w[:3, 3].tolist(), "rotation": [x, y, z, w],
             "fx": float(camera.fx), "fy": float(camera.fy)}
 
 

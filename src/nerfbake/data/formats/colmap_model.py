@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from nerfbake.data.errors import DatasetError
+from nerfbake.render.rotations import quaternion_matrix
 
 # COLMAP model id -> (name, number of parameters)
 MODELS = {
@@ -44,12 +45,8 @@ class ColmapImage:
 
     def world_to_camera(self) -> np.ndarray:
         """4x4 OpenCV world-to-camera matrix."""
-        w, x, y, z = self.qvec / np.linalg.norm(self.qvec)
-        r = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
-                      [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
-                      [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
         m = np.eye(4)
-        m[:3, :3], m[:3, 3] = r, self.tvec
+        m[:3, :3], m[:3, 3] = quaternion_matrix(np.asarray(self.qvec, np.float64)), self.tvec
         return m
 
 

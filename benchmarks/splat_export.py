@@ -1,0 +1,62 @@
+"""Exported splats scored on held-out views by two independent renderers: gsplat.js (npm, a published web splat
+viewer, in headless chromium) reading the written file, and our Warp rasteriser; with the teacher's or the tree's
+figure on the same views beside them when a run's results.json is given.
+
+    python benchmarks/splat_export.py --splats F.ply|F.splat --data DATASET [--views 5] [--results RUN/results.json]
+        [--images outputs/splat_eval]
+    -> one JSON object on stdout: per renderer PSNR / SSIM / LPIPS, the file's size and splat count (from its
+       side-car F.json), and each reference method's PSNR and the gap to it
+
+The dataset must be loaded as the splats' source was (``--normalize``, ``--downscale`` as for the export; the
+side-car records the normalisation that was used).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+from nerfbake.data.formats import load_dataset
+from nerfbake.eval.views import evaluate_views
+from nerfbake.splats.io import read_splats
+from nerfbake.splats.rasterize import render_gaussians
+from nerfbake.splats.web_viewer import render_with_gsplat
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--splats", required=True)
+    ap.add_argument("--data", required=True)
+    ap.add_argument("--views", type=int, default=5, help="evenly spaced test views")
+    ap.add_argument("--normalize", default="auto")
+    ap.add_argument("--downscale", type=float, default=1.0)
+    ap.add_argument("--results", help="a pipeline run's results.json: its methods' PSNR on the same views")
+    ap.add_argument("--images", help="write both renderers' pictures under this folder")
+    args = ap.parse_args()
+    ds = load_dataset(args.data, downscale=args.downscale, normalize=args.normalize)
+    g = read_splats(args.splats)
+    renderers = {
+        "gsplat.js": lambda cam, bg: render_with_gsplat(args.splats, cam, bg),
+        "warp": lambda cam, bg: render_gaussians(g, cam, bg).clamp(0, 1).numpy(),
+    }
+    report = {"splats": args.splats, "data": args.data, "num_splats": len(g),
+              "file_bytes": Path(args.splats).stat().st_size}
+    side_car = Path(f"{args.splats}.json")
+    if side_car.is_file():
+        record = json.loads(side_car.read_text())
+        report["export"] = {k: record[k] for k in ("source", "sh_degree", "fit", "seconds") if k in record}
+    for name, render in renderers.items():
+        r = evaluate_views(render, ds, "test", args.views, desc=name,
+                           image_dir=Path(args.images) / name if args.images else None)
+        report[name] = {k: r[k] for k in ("psnr", "ssim", f"lpips_{r['lpips_net']}", "num_views", "seconds_per_view")}
+        report[name]["per_image_psnr"] = [m["psnr"] for m in r["per_image"]]
+    if args.results:
+        for m in json.loads(Path(args.results).read_text())["methods"]:
+            report.setdefault("references", {})[m["method"]] = {
+                "psnr": m["psnr"], "num_views": m.get("num_views"),
+                "gsplat_js_minus_this_db": report["gsplat.js"]["psnr"] - m["psnr"]}
+    print(json.dumps(report, indent=2))
+
+
+if __name__ == "__main__":
+    main()
