@@ -133,3 +133,34 @@ def test_degree_three_ply_orders_f_rest_channel_by_channel(tmp_path):
             np.testing.assert_allclose(v[f"f_rest_{c * 15 + j}"], g.sh[:, c, 1 + j], rtol=1e-6)
     np.testing.assert_allclose(np.stack([v[f"rot_{i}"] for i in range(4)], 1), g.quats, rtol=1e-6)
     np.testing.assert_allclose(v["opacity"], g.opacity_logits, rtol=1e-6)
+
+
+def test_environment_map_becomes_a_shell_of_splats_seen_in_the_right_directions(tiny_tree, tmp_path, capsys):
+    """A tree's environment map (colour by direction beyond its box) turned into splats: seen from the box's centre,
+    each direction shows the map's colour there; and the export writes the shell after the leaves."""
+    from nerfbake.data.cameras import Camera
+    from nerfbake.octree.io import save_tree
+    from nerfbake.render.envmap import equirect_directions
+    from nerfbake.splats.from_tree import environment_shell
+    from nerfbake.splats.rasterize import render_gaussians
+
+    tree = load_tree(tiny_tree)
+    tree.env_map = (0.5 + 0.4 * equirect_directions(32, 64)).float()  # a smooth map: colour = 0.5 + 0.4 d
+    shell = environment_shell(tree, sh_degree=1)
+    assert len(shell) == 32 * 64 and shell.sh.shape == (32 * 64, 3, 4) and np.all(shell.sh[:, :, 1:] == 0)
+    centre = tree.tree_to_world(torch.full((1, 3), 0.5, dtype=torch.float64)).numpy()[0]
+    for view in ([1.0, 0.0, 0.0], [0.0, -1.0, 0.0], [0.3, 0.5, 0.81], [0.0, 0.0, -1.0]):
+        v = np.asarray(view) / np.linalg.norm(view)
+        helper = np.array([0.0, 1.0, 0.0]) if abs(v[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
+        right = np.cross(v, helper)
+        right /= np.linalg.norm(right)
+        c2w = np.eye(4)
+        c2w[:3, :3] = np.stack([right, np.cross(right, v), -v], 1)
+        c2w[:3, 3] = centre
+        img = render_gaussians(shell, Camera(c2w, 9, 9, 20.0, 20.0, 4.5, 4.5), (0.0, 0.0, 0.0)).numpy()
+        np.testing.assert_allclose(img[4, 4], 0.5 + 0.4 * v, atol=0.04, err_msg=str(view))
+    path = save_tree(tree, tmp_path / "env.npz")
+    assert main(["export", "--tree", str(path), "--out", str(tmp_path / "s.ply"), "--json"]) == 0
+    record = json.loads(capsys.readouterr().out)
+    assert record["environment_splats"] == 32 * 64
+    assert record["num_splats"] == len(gaussians_from_tree(tree)) + 32 * 64

@@ -16,8 +16,8 @@ from nerfbake.eval.views import evaluate_views, pick_views
 from nerfbake.octree.build import build_octree, build_preset
 from nerfbake.octree.io import load_tree
 from nerfbake.splats.fit import FitConfig, fit_gaussians
-from nerfbake.splats.from_tree import gaussians_from_tree
-from nerfbake.splats.gaussians import Gaussians
+from nerfbake.splats.from_tree import environment_shell, gaussians_from_tree
+from nerfbake.splats.gaussians import Gaussians, concatenate
 from nerfbake.splats.io import SplatFileError, check_format, write_splats
 from nerfbake.splats.rasterize import render_gaussians
 from nerfbake.teacher.evaluate import render_camera
@@ -41,8 +41,8 @@ def input_frame(ds: Dataset | None) -> dict:
 
 
 def evaluate_splats(g: Gaussians, ds: Dataset, split: str = "test", max_views: int | None = 5) -> dict:
-    """PSNR / SSIM / LPIPS of the Gaussians on a held-out split, drawn by the torch reference rasteriser (the same
-    protocol as every other renderer's evaluation)."""
+    """PSNR / SSIM / LPIPS of the Gaussians on a held-out split, drawn by our rasteriser (the same protocol as every
+    other renderer's evaluation)."""
     result = evaluate_views(lambda cam, bg: render_gaussians(g, cam, bg).numpy(), ds, split, max_views,
                             desc="splats eval")
     return {k: result[k] for k in ("psnr", "ssim", f"lpips_{result['lpips_net']}", "lpips_net", "num_views",
@@ -85,13 +85,17 @@ def export_splats(out: str | Path, fmt: str, tree: str | Path | None = None, tea
             model, tcfg, meta, _ = load_teacher(Path(teacher))  # a clear error for a folder of the wrong kind
             data, normalize, downscale = data or meta["data"], tcfg.normalize, tcfg.downscale
             tree = build_octree(teacher, Path(tmp) / "tree.npz", replace(build_preset("cpu-small"), grid=grid))["tree"]
-        g = gaussians_from_tree(load_tree(tree), 0 if fmt == "splat" else sh_degree, max_splats)  # .splat: colour only
+        octree = load_tree(tree)
+        g = gaussians_from_tree(octree, 0 if fmt == "splat" else sh_degree, max_splats)  # .splat: colour only
     ds = None if data is None else load_dataset(data, downscale=downscale, normalize=normalize)
     if len(g) == 0:
         raise SplatFileError(f"{tree}: no leaf is opaque enough to become a splat (an empty tree); check it with "
                              "nerfbake octree info")
+    shell = environment_shell(octree, g.sh_degree)  # what lies beyond the box of an unbounded scene
+    if shell is not None:
+        g = concatenate([g, shell])
     record = {"file": str(out), "format": fmt, "source": str(teacher or tree), "num_splats": len(g),
-              "sh_degree": g.sh_degree, **input_frame(ds)}
+              "environment_splats": 0 if shell is None else len(shell), "sh_degree": g.sh_degree, **input_frame(ds)}
     if fit_steps:
         views = target_views(ds, fit_views, model.eval() if model is not None else None)
         g, history = fit_gaussians(g, views, FitConfig(steps=fit_steps))

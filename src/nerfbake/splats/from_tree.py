@@ -6,6 +6,12 @@ one, so a surface of leaves is covered without holes or doubled opacity), opacit
 (what a ray crossing the cube collects), and colour refitted: PlenOctrees' colour is ``sigmoid(SH . k)``, 3DGS's
 ``max(SH . k' + 0.5, 0)``, so ``k'`` is the least-squares fit of ``sigmoid(SH . k) - 0.5`` over ``DIRECTIONS``
 directions spread over the sphere, not a copy of ``k``.
+
+A tree of an unbounded scene draws what lies beyond its box from an environment map (colour by direction). No splat
+file can hold such a map, so :func:`environment_shell` turns it into splats too: flat Gaussians on a sphere
+``SHELL_DISTANCE`` box half-sizes around the box, one per texel, each facing the centre, as opaque as a splat gets.
+Seen from inside the box, a direction's colour then comes from the shell within a few degrees of where the map
+puts it; every splat viewer draws the room or the sky behind the scene.
 """
 from __future__ import annotations
 
@@ -14,13 +20,22 @@ import math
 import numpy as np
 import torch
 
+from nerfbake.data.images import area_downscale
 from nerfbake.octree.tree import Octree
+from nerfbake.render.envmap import equirect_directions
+from nerfbake.render.rotations import matrix_quaternion
 from nerfbake.render.sh import sh_basis
-from nerfbake.splats.gaussians import Gaussians
+from nerfbake.splats.gaussians import SH_C0, Gaussians
 
 SPREAD = 0.4
 DIRECTIONS = 128
 MIN_OPACITY = 1.0 / 255.0  # a splat fainter than one 8-bit level is dropped
+# The environment shell's radius in box half-sizes: from inside the box a direction is off by at most
+# atan(sqrt(3) / 20), under 5 degrees; and within gsplat.js's far plane (100) for boxes of half-size up to 5.
+SHELL_DISTANCE = 20.0
+SHELL_ROWS = 64  # the map is averaged down to at most this many rows (twice as many columns) of shell splats
+SHELL_SPREAD = 0.6  # standard deviation in texel spacings: neighbours overlap into an opaque shell
+SHELL_OPACITY = 0.99
 
 
 def sphere_directions(n: int) -> torch.Tensor:
@@ -76,3 +91,31 @@ def gaussians_from_tree(tree: Octree, sh_degree: int | None = None, max_splats: 
         opacity_logits=torch.log(a / (1 - a)).numpy(),
         sh=refit_sh(coeffs, tree_degree, degree).double().numpy(),
     )
+
+
+def environment_shell(tree: Octree, sh_degree: int, rows: int = SHELL_ROWS) -> Gaussians | None:
+    """The tree's environment map as a sphere of flat splats around its box (see the module docstring), colour
+    only (higher SH bands zero); None for a tree without a map."""
+    if tree.env_map is None:
+        return None
+    env = np.asarray(tree.env_map.detach().cpu().numpy(), np.float64)
+    if env.shape[0] > rows:
+        env = area_downscale(np.round(env * 255).astype(np.uint8), (2 * rows, rows)).astype(np.float64) / 255.0
+    h, w = env.shape[:2]
+    d = equirect_directions(h, w).double().numpy().reshape(-1, 3)
+    th = np.repeat(np.pi * (np.arange(h) + 0.5) / h, w)
+    ph = np.tile(2 * np.pi * ((np.arange(w) + 0.5) / w - 0.5), h)
+    e_th = np.stack([np.cos(th) * np.cos(ph), np.cos(th) * np.sin(ph), -np.sin(th)], -1)
+    e_ph = np.stack([-np.sin(ph), np.cos(ph), np.zeros_like(ph)], -1)
+    inv = tree.invradius.detach().cpu().double().numpy()
+    centre = tree.tree_to_world(torch.full((1, 3), 0.5, dtype=torch.float64)).numpy()[0]
+    radius = SHELL_DISTANCE * float((0.5 / inv).max())
+    spacing_th = radius * np.pi / h
+    spacing_ph = radius * 2 * np.pi * np.maximum(np.sin(th), 0.5 / h) / w
+    scales = np.stack([SHELL_SPREAD * spacing_th * np.ones_like(th), SHELL_SPREAD * spacing_ph,
+                       1e-3 * spacing_th * np.ones_like(th)], -1)
+    sh = np.zeros((h * w, 3, (sh_degree + 1) ** 2))
+    sh[:, :, 0] = (env.reshape(-1, 3) - 0.5) / SH_C0
+    return Gaussians(means=centre + radius * d, log_scales=np.log(scales),
+                     quats=matrix_quaternion(np.stack([e_th, e_ph, d], -1)),  # columns: the disc's axes, its normal
+                     opacity_logits=np.full(h * w, np.log(SHELL_OPACITY / (1 - SHELL_OPACITY))), sh=sh)

@@ -45,3 +45,8 @@ class Gaussians:
     def base_colors(self) -> np.ndarray:
         """(N, 3) the view-independent colour (degree 0 only), as compact formats store it."""
         return np.clip(SH_C0 * self.sh[:, :, 0] + 0.5, 0.0, 1.0)
+
+
+def concatenate(parts: list[Gaussians]) -> Gaussians:
+    """One set of Gaussians from several with the same SH degree."""
+    return Gaussians(**{k: np.concatenate([getattr(g, k) for g in parts]) for k in FIELDS})

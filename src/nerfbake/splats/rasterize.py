@@ -39,9 +39,14 @@ def project(means, log_scales, quats, camera: Camera):
     m = quaternion_matrix(quats) * s[:, None, :]  # R S
     cov_world = m @ m.transpose(1, 2)
     cov_cam = rot.T @ cov_world @ rot
+    # The Jacobian is taken where the mean's direction is clamped to 1.3x the field of view, as the reference code
+    # does: a Gaussian far off to the side (near the camera plane) would otherwise blow up to cover the image.
+    lim_x, lim_y = 1.3 * camera.width / (2 * camera.fx), 1.3 * camera.height / (2 * camera.fy)
+    jx = (p[:, 0] / d).clamp(-lim_x, lim_x) * d
+    jy = (p[:, 1] / d).clamp(-lim_y, lim_y) * d
     zeros = torch.zeros_like(d)
-    jac = torch.stack([camera.fx / d, zeros, camera.fx * p[:, 0] / d ** 2,
-                       zeros, -camera.fy / d, -camera.fy * p[:, 1] / d ** 2], -1).reshape(-1, 2, 3)
+    jac = torch.stack([camera.fx / d, zeros, camera.fx * jx / d ** 2,
+                       zeros, -camera.fy / d, -camera.fy * jy / d ** 2], -1).reshape(-1, 2, 3)
     cov2 = jac @ cov_cam @ jac.transpose(1, 2) + LOW_PASS * torch.eye(2, dtype=means.dtype, device=means.device)
     a, b, c = cov2[:, 0, 0], cov2[:, 0, 1], cov2[:, 1, 1]
     det = (a * c - b * b).clamp_min(1e-12)
