@@ -99,6 +99,26 @@ def test_a_tree_serves_only_itself_not_a_same_named_file_elsewhere(tmp_path):
             assert _get(server, bad)[0] == 403, bad
 
 
+def test_a_splat_file_serves_itself_the_splat_page_and_gsplat_js_only(tmp_path):
+    from nerfbake.viewer.server import GSPLAT_DIST
+
+    if not (GSPLAT_DIST / "index.es.js").is_file():
+        pytest.skip(f"gsplat.js not installed at {GSPLAT_DIST} (make setup installs it with npm)")
+    splats = tmp_path / "scene.ply"
+    splats.write_bytes(b"ply\nformat binary_little_endian 1.0\nend_header\n")
+    (tmp_path / "secret.txt").write_bytes(SECRET)
+    with ViewerServer(splats, port=0) as server:
+        assert json.loads(_get(server, "/scene.json")[2])["kind"] == "splats"
+        assert b"/viewer/splats.js" in _get(server, "/")[2]
+        assert _get(server, "/scene/scene.ply")[2] == splats.read_bytes()
+        status, headers, body = _get(server, "/gsplat/index.es.js")
+        assert status == 200 and headers["Content-Type"] == "text/javascript" and body == (GSPLAT_DIST / "index.es.js").read_bytes()
+        for bad in ("/scene/secret.txt", "/gsplat/../../secret.txt", "/gsplat/%2e%2e/package.json"):
+            assert _get(server, bad)[0] in (403, 404), bad
+    with ViewerServer(shared_data("smerf_tiny"), port=0) as server:  # other scenes have no /gsplat/
+        assert _get(server, "/gsplat/index.es.js")[0] == 404
+
+
 def test_find_scene_and_the_cli_refuse_what_is_not_a_scene(tmp_path):
     (tmp_path / "secret.txt").write_bytes(SECRET)
     with pytest.raises(SceneError, match="not a SMERF asset directory"):

@@ -152,8 +152,8 @@ class Doctor(Command):
 @dataclass(kw_only=True)
 class View(Command):
     name = "view"
-    help = "serve the web viewer for a baked SMERF folder or a PlenOctree .npz"
-    scene: str = option(help="asset folder (holding sm_XXX/) or tree .npz", positional=True)
+    help = "serve the web viewer for a baked SMERF folder, a PlenOctree .npz or a splat .ply/.splat (gsplat.js)"
+    scene: str = option(help="asset folder (holding sm_XXX/), tree .npz or splat .ply/.splat", positional=True)
     port: int = option(8000)
     host: str = option("127.0.0.1", "0.0.0.0 exposes the viewer to other devices on the network")
     benchmark: bool = option(False, "measure ms/frame at 512x512 and 1280x720 in headless chromium")
@@ -175,6 +175,9 @@ class View(Command):
         from nerfbake.viewer.server import ViewerServer, find_scene
 
         scene = find_scene(self.scene)
+        if scene.kind == "splats" and (self.benchmark or self.walkthrough):
+            raise ValueError("--benchmark and --walkthrough time our own renderers (SMERF folders and trees); a splat "
+                             "file is drawn by gsplat.js: see benchmarks/splat_export.py for its pictures")
         if self.walkthrough and not self.benchmark:
             raise ValueError("--walkthrough flies the viewer headless: give it with --benchmark")
         if self.walkthrough:

@@ -1,7 +1,8 @@
 """``nerfbake view``: serve the web viewer and one scene over HTTP.
 
 Three URL spaces and nothing else: ``/`` and ``/viewer/...`` are the static viewer files shipped in the package,
-``/scene.json`` describes the scene, ``/scene/...`` are the scene's own files. A request for ``X.raw`` or ``X.json``
+``/scene.json`` describes the scene, ``/scene/...`` are the scene's own files; for a splat file (``.ply``,
+``.splat``) also ``/gsplat/...``, the gsplat.js library that draws it (installed from npm by ``make setup``). A request for ``X.raw`` or ``X.json``
 that exists on disk only as ``X.raw.gz`` / ``X.json.gz`` is answered with the compressed bytes and
 ``Content-Encoding: gzip`` (what the official SMERF viewer expects of its server).
 
@@ -16,6 +17,7 @@ from __future__ import annotations
 import json
 import mimetypes
 import re
+import sys
 import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -31,6 +33,11 @@ CHUNK = 1 << 20  # bytes per write while streaming a file
 WORKERS = 16  # requests handled at once; further connections wait in the listen queue
 CLIENT_TIMEOUT_S = 60  # a client that sends or reads nothing for this long is dropped, freeing its worker
 SUBMODEL = re.compile(r"sm_\d+")
+SPLAT_SUFFIXES = (".ply", ".splat")
+# gsplat.js (npm ``gsplat``), which draws splat files; ``make setup`` installs it into the environment's npm folder
+GSPLAT_DIST = Path(sys.prefix) / "npm" / "node_modules" / "gsplat" / "dist"
+GSPLAT_MISSING = (f"{GSPLAT_DIST}: gsplat.js is not installed; run make setup with npm available "
+                  "(npm install --prefix .venv/npm gsplat@1.2.9)")
 
 
 class SceneError(NerfbakeError):
@@ -39,9 +46,9 @@ class SceneError(NerfbakeError):
 
 @dataclass
 class Scene:
-    kind: str  # "smerf" | "octree"
+    kind: str  # "smerf" | "octree" | "splats"
     root: Path  # folder whose files appear under /scene/
-    entry: str  # path below root the viewer starts from: "sm_000" or "tree.npz"
+    entry: str  # path below root the viewer starts from: "sm_000", "tree.npz" or "scene.ply"
     name: str
     served: list[Path] = field(default_factory=list)  # resolved folders/files below root that may be served
 
@@ -68,13 +75,19 @@ def _has_params(folder: Path) -> bool:
 
 
 def find_scene(path: str | Path) -> Scene:
-    """A SMERF asset directory (the folder holding ``sm_XXX/``, or one ``sm_XXX`` folder) or a tree ``.npz``."""
+    """A SMERF asset directory (the folder holding ``sm_XXX/``, or one ``sm_XXX`` folder), a tree ``.npz`` or a
+    splat file (``.ply`` / ``.splat``, as ``nerfbake export`` writes)."""
     path = Path(path).expanduser().resolve()
     if not path.exists():
-        raise SceneError(f"{path}: no such scene; pass a baked SMERF folder (nerfbake bake) or a tree .npz")
+        raise SceneError(f"{path}: no such scene; pass a baked SMERF folder (nerfbake bake), a tree .npz or a splat "
+                         ".ply/.splat (nerfbake export)")
     if path.is_file():
+        if path.suffix.lower() in SPLAT_SUFFIXES:
+            if not (GSPLAT_DIST / "index.es.js").is_file():
+                raise SceneError(GSPLAT_MISSING)
+            return Scene("splats", path.parent, path.name, path.stem, [path])
         if path.suffix != ".npz":
-            raise SceneError(f"{path}: not a PlenOctree .npz or SMERF asset folder")
+            raise SceneError(f"{path}: not a PlenOctree .npz, a splat .ply/.splat or a SMERF asset folder")
         return Scene("octree", path.parent, path.name, path.stem, [path])
     if _has_params(path):  # an sm_XXX folder itself, as the official viewer's ?dir= takes
         siblings = [p for p in path.parent.iterdir() if SUBMODEL.fullmatch(p.name) and p.is_dir() and _has_params(p)]
@@ -153,7 +166,8 @@ def make_handler(scene: Scene, static: Path = STATIC):
         def _serve(self, head: bool):
             path = unquote(urlsplit(self.path).path)
             if path in ("/", "/index.html"):
-                return self._file(static / "index.html", None, head, cache="no-cache")
+                page = "splats.html" if scene.kind == "splats" else "index.html"
+                return self._file(static / page, None, head, cache="no-cache")
             if path == "/scene.json":
                 body = json.dumps(scene.describe()).encode()
                 return self._send(HTTPStatus.OK, body, "application/json", {"Cache-Control": "no-cache"}, head)
@@ -161,6 +175,8 @@ def make_handler(scene: Scene, static: Path = STATIC):
                 rel, root, allowed, cache = path[len("/viewer/"):], static, None, "no-cache"
             elif path.startswith("/scene/"):
                 rel, root, allowed, cache = path[len("/scene/"):], scene.root, scene.allows, "public, max-age=3600"
+            elif path.startswith("/gsplat/") and scene.kind == "splats":
+                rel, root, allowed, cache = path[len("/gsplat/"):], GSPLAT_DIST, None, "public, max-age=3600"
             else:
                 return self._error(HTTPStatus.NOT_FOUND, head)
             target = resolve_inside(root, rel, allowed)
