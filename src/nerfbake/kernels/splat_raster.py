@@ -41,6 +41,14 @@ def splat_alpha(xy: wp.vec2, conic: wp.vec3, opacity: float, px: float, py: floa
     return opacity * wp.exp(power), power, dx, dy
 
 
+@wp.func
+def pixel_tile(pid: int, width: int, tiles_x: int):
+    """(its 16 x 16 tile, centre x, centre y) of pixel ``pid`` in row-major order."""
+    x = pid % width
+    y = pid // width
+    return (y // 16) * tiles_x + x // 16, float(x) + 0.5, float(y) + 0.5
+
+
 @wp.kernel
 def composite_forward(xy: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec3), opacity: wp.array(dtype=float),
                       color: wp.array(dtype=wp.vec3), tile_start: wp.array(dtype=wp.int32),
@@ -48,11 +56,7 @@ def composite_forward(xy: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec3
                       first: int, out_rgb: wp.array(dtype=wp.vec3), out_end: wp.array(dtype=wp.int32)):
     """One pixel's colour, and where in its tile's list compositing stopped (for the backward)."""
     pid = wp.tid() + first
-    x = pid % width
-    y = pid // width
-    tile = (y // 16) * tiles_x + x // 16
-    px = float(x) + 0.5
-    py = float(y) + 0.5
+    tile, px, py = pixel_tile(pid, width, tiles_x)
     T = float(1.0)
     c = wp.vec3(0.0, 0.0, 0.0)
     end = tile_start[tile + 1]
@@ -81,11 +85,7 @@ def composite_backward(xy: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec
                        g_opacity: wp.array(dtype=float), g_color: wp.array(dtype=wp.vec3)):
     """One pixel's share of every splat's gradient, summed into the g_* buffers (see the module docstring)."""
     pid = wp.tid() + first
-    x = pid % width
-    y = pid // width
-    tile = (y // 16) * tiles_x + x // 16
-    px = float(x) + 0.5
-    py = float(y) + 0.5
+    tile, px, py = pixel_tile(pid, width, tiles_x)
     dl = grad_rgb[pid]
     final = rgb[pid]
     T = float(1.0)
