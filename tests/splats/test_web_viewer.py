@@ -9,7 +9,8 @@ from nerfbake.octree.io import load_tree
 from nerfbake.splats.from_tree import gaussians_from_tree
 from nerfbake.splats.io import read_ply, read_splat, write_splats
 from nerfbake.splats.rasterize import render_gaussians
-from nerfbake.splats.web_viewer import GSPLAT_DIST, render_with_gsplat
+from nerfbake.splats.web_viewer import render_with_gsplat
+from nerfbake.viewer.server import GSPLAT_DIST
 
 pytestmark = pytest.mark.skipif(not (GSPLAT_DIST / "index.es.js").is_file(),
                                 reason=f"gsplat.js not installed at {GSPLAT_DIST} (make setup installs it with npm)")

@@ -14,11 +14,16 @@ import math
 import torch
 
 
-def equirect_directions(height: int, width: int) -> torch.Tensor:
-    """Unit directions (H, W, 3) at the texel centres of an H x W map."""
+def equirect_angles(height: int, width: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Polar angle th and azimuth ph (each (H, W), float64) at the texel centres of an H x W map."""
     th = math.pi * (torch.arange(height, dtype=torch.float64) + 0.5) / height
     ph = 2 * math.pi * ((torch.arange(width, dtype=torch.float64) + 0.5) / width - 0.5)
-    th, ph = torch.meshgrid(th, ph, indexing="ij")
+    return torch.meshgrid(th, ph, indexing="ij")
+
+
+def equirect_directions(height: int, width: int) -> torch.Tensor:
+    """Unit directions (H, W, 3) at the texel centres of an H x W map."""
+    th, ph = equirect_angles(height, width)
     return torch.stack([th.sin() * ph.cos(), th.sin() * ph.sin(), th.cos()], -1).float()
 
 

@@ -22,7 +22,7 @@ import torch
 
 from nerfbake.data.images import area_downscale
 from nerfbake.octree.tree import Octree
-from nerfbake.render.envmap import equirect_directions
+from nerfbake.render.envmap import equirect_angles
 from nerfbake.render.rotations import matrix_quaternion
 from nerfbake.render.sh import sh_basis
 from nerfbake.splats.gaussians import SH_C0, Gaussians
@@ -102,9 +102,8 @@ def environment_shell(tree: Octree, sh_degree: int, rows: int = SHELL_ROWS) -> G
     if env.shape[0] > rows:
         env = area_downscale(np.round(env * 255).astype(np.uint8), (2 * rows, rows)).astype(np.float64) / 255.0
     h, w = env.shape[:2]
-    d = equirect_directions(h, w).double().numpy().reshape(-1, 3)
-    th = np.repeat(np.pi * (np.arange(h) + 0.5) / h, w)
-    ph = np.tile(2 * np.pi * ((np.arange(w) + 0.5) / w - 0.5), h)
+    th, ph = (a.numpy().reshape(-1) for a in equirect_angles(h, w))
+    d = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], -1)  # the map's direction per texel
     e_th = np.stack([np.cos(th) * np.cos(ph), np.cos(th) * np.sin(ph), -np.sin(th)], -1)
     e_ph = np.stack([-np.sin(ph), np.cos(ph), np.zeros_like(ph)], -1)
     inv = tree.invradius.detach().cpu().double().numpy()

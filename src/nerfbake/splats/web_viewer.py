@@ -13,14 +13,8 @@ from __future__ import annotations
 import numpy as np
 
 from nerfbake.data.cameras import Camera
-from nerfbake.errors import NerfbakeError
 from nerfbake.render.rotations import matrix_quaternion
 from nerfbake.viewer.browser import ViewerPage
-from nerfbake.viewer.server import GSPLAT_DIST, GSPLAT_MISSING
-
-
-class SplatViewerMissing(NerfbakeError):
-    """gsplat.js is not installed (no npm when ``make setup`` ran)."""
 
 
 def gsplat_camera(camera: Camera) -> dict:
@@ -39,9 +33,8 @@ def render_with_gsplat(splat_file, camera: Camera, background=(1.0, 1.0, 1.0), s
 
 def render_cameras_with_gsplat(splat_file, cameras: list[Camera], background=(1.0, 1.0, 1.0),
                                software_gl: bool = True) -> list[np.ndarray]:
-    """:func:`render_with_gsplat` for several cameras of one size, in one page load."""
-    if not (GSPLAT_DIST / "index.es.js").is_file():
-        raise SplatViewerMissing(GSPLAT_MISSING)
+    """:func:`render_with_gsplat` for several cameras of one size, in one page load (without gsplat.js installed,
+    opening the page raises the viewer's SceneError saying how to install it)."""
     w, h = cameras[0].width, cameras[0].height
     if any((c.width, c.height) != (w, h) for c in cameras):
         raise ValueError("render_cameras_with_gsplat draws cameras of one size")

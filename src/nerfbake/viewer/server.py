@@ -2,9 +2,9 @@
 
 Three URL spaces and nothing else: ``/`` and ``/viewer/...`` are the static viewer files shipped in the package,
 ``/scene.json`` describes the scene, ``/scene/...`` are the scene's own files; for a splat file (``.ply``,
-``.splat``) also ``/gsplat/...``, the gsplat.js library that draws it (installed from npm by ``make setup``). A request for ``X.raw`` or ``X.json``
-that exists on disk only as ``X.raw.gz`` / ``X.json.gz`` is answered with the compressed bytes and
-``Content-Encoding: gzip`` (what the official SMERF viewer expects of its server).
+``.splat``) also ``/gsplat/...``, the gsplat.js library that draws it (installed from npm by ``make setup``). A
+request for ``X.raw`` or ``X.json`` that exists on disk only as ``X.raw.gz`` / ``X.json.gz`` is answered with the
+compressed bytes and ``Content-Encoding: gzip`` (what the official SMERF viewer expects of its server).
 
 Only the scene the user named is served: a whole asset folder, one ``sm_XXX`` folder (with its sibling ``sm_XXX``
 submodel folders, which the viewer streams, and nothing else of the parent), or one ``.npz``. Every path, the

@@ -100,7 +100,8 @@ export function environmentTexture(gl, width, height, data) {
   return tex;
 }
 
-function setFilter(gl, target, linear) {
+// Linear or nearest filtering, clamped to the edge on every axis.
+export function setFilter(gl, target, linear) {
   const f = linear ? gl.LINEAR : gl.NEAREST;
   gl.texParameteri(target, gl.TEXTURE_MIN_FILTER, f);
   gl.texParameteri(target, gl.TEXTURE_MAG_FILTER, f);

@@ -2,7 +2,7 @@
 // submodels (ping-pong: the old one renders until the new one is uploaded), an LRU host cache of decoded
 // submodels, and the deferred MLP interpolated at the camera position on the CPU every frame.
 import {ViewerError, bindTextures, mat3ColumnMajor, byteArrayTexture, createProgram, drawFullscreen, fetchBytes, fetchJSON,
-        texture3D} from './gl.js';
+        setFilter, texture3D} from './gl.js';
 import {mlpLayout, packMlp, smerfDirectionFragment, smerfFragment} from './smerf_shader.js';
 
 // viewer frame <-> training frame: (x', y', z') = (-x, z, y); its own inverse
@@ -290,10 +290,7 @@ class DirectionGrid {
     this.tex = gl.createTexture();
     gl.bindTexture(gl.TEXTURE_2D_ARRAY, this.tex);
     gl.texStorage3D(gl.TEXTURE_2D_ARRAY, 1, gl[this.format], w, h, layers);
-    for (const [k, v] of [[gl.TEXTURE_MIN_FILTER, gl.LINEAR], [gl.TEXTURE_MAG_FILTER, gl.LINEAR],
-                          [gl.TEXTURE_WRAP_S, gl.CLAMP_TO_EDGE], [gl.TEXTURE_WRAP_T, gl.CLAMP_TO_EDGE]]) {
-      gl.texParameteri(gl.TEXTURE_2D_ARRAY, k, v);
-    }
+    setFilter(gl, gl.TEXTURE_2D_ARRAY, true);
     gl.bindFramebuffer(gl.FRAMEBUFFER, this.fbo);
     const attachments = [];
     for (let j = 0; j < layers; j++) {
