@@ -9,7 +9,10 @@ import torch
 from nerfbake.data.cameras import Camera
 import pytest
 
-from nerfbake.splats.rasterize import LOW_PASS, rasterize, rasterize_reference
+from nerfbake.kernels.splat_raster import REFERENCE, WEB
+from nerfbake.splats.rasterize import rasterize, rasterize_reference
+
+LOW_PASS = REFERENCE.low_pass
 
 BOTH = pytest.mark.parametrize("raster", [rasterize, rasterize_reference], ids=["warp", "reference"])
 
@@ -42,6 +45,23 @@ def test_one_gaussian_draws_its_projected_footprint(raster):
     r2 = (xs - 16) ** 2 + (ys - 12) ** 2
     alpha = opacity * np.exp(-0.5 * r2 / var_px)
     alpha = np.where(alpha >= 1 / 255, alpha, 0.0)
+    want = np.stack([alpha, np.zeros_like(alpha), 1 - alpha], -1)
+    np.testing.assert_allclose(img.numpy(), want, atol=1e-6)
+
+
+@BOTH
+def test_web_rules_cut_the_footprint_at_sqrt8_sigma_and_clamp_colour(raster):
+    """Under the web viewers' rules the low-pass is a quarter of the reference's, a splat ends where 0.5 d^T Sigma^-1 d = 4 (2.83 sigma), however faint it is there,
+    nothing is skipped for being faint inside, and a colour over 1 is drawn as 1."""
+    cam = camera()
+    sigma, opacity = 0.5, 0.15
+    img = raster(*one([[0.0, 0.0, 0.0]], [[sigma] * 3], [opacity], [[1.4, 0.0, 0.0]]), cam, (0.0, 0.0, 1.0),
+                 rules=WEB)
+    var_px = (cam.fx * sigma / 5.0) ** 2 + WEB.low_pass
+    ys, xs = np.mgrid[0:24, 0:32] + 0.5
+    r2 = (xs - 16) ** 2 + (ys - 12) ** 2
+    alpha = np.where(0.5 * r2 / var_px <= 4.0, opacity * np.exp(-0.5 * r2 / var_px), 0.0)
+    assert ((alpha > 0) & (alpha < 1 / 255)).any() and (alpha == 0).any()  # both rules differ from the reference here
     want = np.stack([alpha, np.zeros_like(alpha), 1 - alpha], -1)
     np.testing.assert_allclose(img.numpy(), want, atol=1e-6)
 
@@ -87,14 +107,15 @@ def random_scene(n, seed=0):
     return [means, log_scales, quats, logits, sh]
 
 
-def test_warp_kernels_match_the_reference_in_picture_and_gradients():
+@pytest.mark.parametrize("rules", [REFERENCE, WEB], ids=["reference-rules", "web-rules"])
+def test_warp_kernels_match_the_reference_in_picture_and_gradients(rules):
     cam = camera(70, 50, 60.0)
     scene = random_scene(400)
     weights = torch.rand(50, 70, 3, generator=torch.Generator().manual_seed(1))
     grads, images = [], []
     for raster in (rasterize, rasterize_reference):
         params = [p.clone().requires_grad_() for p in scene]
-        img = raster(*params, cam, (0.2, 0.3, 0.4))
+        img = raster(*params, cam, (0.2, 0.3, 0.4), rules)
         (img * weights).sum().backward()
         images.append(img.detach())
         grads.append([p.grad for p in params])

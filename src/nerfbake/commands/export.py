@@ -27,8 +27,11 @@ class Export(Command):
     downscale: float = option(1.0, "image downscale of the --eval-views and --fit-steps images (a teacher's own by "
                               "default)")
     fit_steps: int = option(0, "fit the Gaussians to the teacher's renders of training views (or, with --tree, the "
-                            "training photos of --data) for this many steps of one 64x64 crop each")
+                            "training photos of --data) for this many steps of one 128x128 crop each")
     fit_views: int = option(20, "training views to fit to (evenly spread)")
+    viewer_rules: str = option("web", "the compositing the fit and the evaluation follow: web (gsplat.js, SuperSplat, "
+                               "Spark and the other web viewers: a cut at 2.83 sigma, no alpha cap, 8-bit colours) "
+                               "or reference (the 3DGS CUDA rasteriser)", choices=("web", "reference"))
     overwrite: bool = option(False, OVERWRITE)
     json: bool = option(False, JSON)
 
@@ -36,7 +39,8 @@ class Export(Command):
         from nerfbake.splats.export import export_splats
 
         return export_splats(self.out, self.format, self.tree, self.teacher, self.sh_degree, self.max_splats,
-                             self.data, self.normalize, self.grid, self.overwrite, self.eval_views, self.downscale, self.fit_steps, self.fit_views)
+                             self.data, self.normalize, self.grid, self.overwrite, self.eval_views, self.downscale,
+                             self.fit_steps, self.fit_views, self.viewer_rules)
 
     def text(self, r: dict) -> str:
         scores = ""

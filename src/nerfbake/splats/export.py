@@ -18,7 +18,8 @@ from nerfbake.octree.io import load_tree
 from nerfbake.splats.fit import FitConfig, fit_gaussians
 from nerfbake.splats.from_tree import environment_shell, gaussians_from_tree
 from nerfbake.splats.gaussians import Gaussians, concatenate
-from nerfbake.splats.io import SplatFileError, check_format, write_splats
+from nerfbake.kernels.splat_raster import REFERENCE, WEB
+from nerfbake.splats.io import SplatFileError, check_format, web_quantized, write_splats
 from nerfbake.splats.rasterize import render_gaussians
 from nerfbake.teacher.evaluate import render_camera
 from nerfbake.teacher.run import load_teacher
@@ -40,11 +41,19 @@ def input_frame(ds: Dataset | None) -> dict:
             "to_input_frame": back.tolist()}
 
 
-def evaluate_splats(g: Gaussians, ds: Dataset, split: str = "test", max_views: int | None = 5) -> dict:
+VIEWER_RULES = {"web": WEB, "reference": REFERENCE}
+
+
+def evaluate_splats(g: Gaussians, ds: Dataset, split: str = "test", max_views: int | None = 5,
+                    viewer_rules: str = "reference") -> dict:
     """PSNR / SSIM / LPIPS of the Gaussians on a held-out split, drawn by our rasteriser (the same protocol as every
-    other renderer's evaluation)."""
-    result = evaluate_views(lambda cam, bg: render_gaussians(g, cam, bg).numpy(), ds, split, max_views,
-                            desc="splats eval")
+    other renderer's evaluation) as the ``viewer_rules`` viewer would: for ``web``, the 8-bit colours, opacities and
+    rotations it loads (:func:`web_quantized`) under its compositing."""
+    if viewer_rules == "web":
+        g = web_quantized(g)
+    rules = VIEWER_RULES[viewer_rules]
+    result = evaluate_views(lambda cam, bg: render_gaussians(g, cam, bg, rules).clamp(0, 1).numpy(), ds, split,
+                            max_views, desc="splats eval")
     return {k: result[k] for k in ("psnr", "ssim", f"lpips_{result['lpips_net']}", "lpips_net", "num_views",
                                    "seconds_per_view", "split")}
 
@@ -66,14 +75,17 @@ def target_views(ds: Dataset, num_views: int, teacher=None) -> list:
 def export_splats(out: str | Path, fmt: str, tree: str | Path | None = None, teacher: str | Path | None = None,
                   sh_degree: int | None = None, max_splats: int | None = None, data: str | None = None,
                   normalize: str = "auto", grid: int = 256, overwrite: bool = False, eval_views: int = 0,
-                  downscale: float = 1.0, fit_steps: int = 0, fit_views: int = 20) -> dict:
+                  downscale: float = 1.0, fit_steps: int = 0, fit_views: int = 20,
+                  viewer_rules: str = "web") -> dict:
     """Write the Gaussians of ``tree`` (or of a ``grid``^3 tree built from ``teacher``) to ``out`` in ``fmt`` and
     ``<out>.json`` beside it (counts, sizes, :func:`input_frame` and, with ``eval_views``, :func:`evaluate_splats`
     on that many test views of ``data``); returns that record. ``fit_steps`` > 0 first fits the Gaussians to
-    ``fit_views`` :func:`target_views`."""
+    ``fit_views`` :func:`target_views`; fit and evaluation follow ``viewer_rules`` (``web`` or ``reference``)."""
     start = time.time()
     out = Path(out)
     check_format(out, fmt)  # every check before any work
+    if viewer_rules not in VIEWER_RULES:
+        raise ValueError(f"viewer_rules must be one of {', '.join(VIEWER_RULES)}, not {viewer_rules!r}")
     if (tree is None) == (teacher is None):
         raise ValueError("export needs exactly one of --tree TREE.npz and --teacher RUN")
     if data is None and teacher is None and (fit_steps or eval_views):
@@ -95,14 +107,15 @@ def export_splats(out: str | Path, fmt: str, tree: str | Path | None = None, tea
     if shell is not None:
         g = concatenate([g, shell])
     record = {"file": str(out), "format": fmt, "source": str(teacher or tree), "num_splats": len(g),
-              "environment_splats": 0 if shell is None else len(shell), "sh_degree": g.sh_degree, **input_frame(ds)}
+              "environment_splats": 0 if shell is None else len(shell), "sh_degree": g.sh_degree,
+              "viewer_rules": viewer_rules, **input_frame(ds)}
     if fit_steps:
         views = target_views(ds, fit_views, model.eval() if model is not None else None)
-        g, history = fit_gaussians(g, views, FitConfig(steps=fit_steps))
+        g, history = fit_gaussians(g, views, FitConfig(steps=fit_steps, rules=VIEWER_RULES[viewer_rules]))
         record["fit"] = {"steps": fit_steps, "views": len(views), "targets": "teacher" if model is not None else "photos",
                          "crop_psnr_first_last_50": [float(np.mean(history[:50])), float(np.mean(history[-50:]))]}
     if eval_views:
-        record["eval"] = evaluate_splats(g, ds, max_views=eval_views)
+        record["eval"] = evaluate_splats(g, ds, max_views=eval_views, viewer_rules=viewer_rules)
     write_splats(g, out, fmt)
     record.update(file_bytes=out.stat().st_size, seconds=round(time.time() - start, 1))
     write_json(Path(f"{out}.json"), record)

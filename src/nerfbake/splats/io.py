@@ -116,6 +116,17 @@ def read_splat(path: str | Path) -> Gaussians:
     raw = path.read_bytes()
     if len(raw) % SPLAT_RECORD.itemsize:
         raise SplatFileError(f"{path}: {len(raw)} bytes is not a whole number of 32-byte splats; not a .splat file")
+    return parse_splat(raw)
+
+
+def web_quantized(g: Gaussians) -> Gaussians:
+    """``g`` as a web viewer holds it once loaded (from a ``.ply`` too): the degree-0 colour and the opacity in 8
+    bits, the rotation in 8 bits a component; what a test or a benchmark renders to predict the viewer's picture."""
+    return parse_splat(splat_bytes(g))
+
+
+def parse_splat(raw: bytes) -> Gaussians:
+    """Gaussians from the bytes of a ``.splat``."""
     rec = np.frombuffer(raw, SPLAT_RECORD)
     rgba = rec["rgba"].astype(np.float64) / 255.0
     alpha = np.clip(rgba[:, 3], 1e-6, 1 - 1e-6)
