@@ -75,17 +75,18 @@ import json, resource, sys
 from nerfbake.smerf.bake import bake_student
 from nerfbake.smerf.distill import distill
 from nerfbake.smerf.run import config_from_dict
-teacher, student, assets, cfg, need_distill = json.loads(sys.argv[1])
+teacher, student, assets, cfg, need_distill, camera_radius = json.loads(sys.argv[1])
 if need_distill:
     distill(teacher, student, config_from_dict(cfg))
-bake_student(student, assets)
+bake_student(student, assets, camera_radius=camera_radius)
 print(json.dumps({"peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024}))
 """
 
 
-def distill_and_bake(teacher_dir: Path, student_dir: Path, assets: Path, cfg, need_distill: bool) -> int:
+def distill_and_bake(teacher_dir: Path, student_dir: Path, assets: Path, cfg, need_distill: bool,
+                     camera_radius: float) -> int:
     """Distil (unless finished) and bake in a child process; its peak RSS in bytes (this K's alone)."""
-    arg = json.dumps([str(teacher_dir), str(student_dir), str(assets), asdict(cfg), need_distill])
+    arg = json.dumps([str(teacher_dir), str(student_dir), str(assets), asdict(cfg), need_distill, camera_radius])
     proc = subprocess.run([sys.executable, "-c", CHILD, arg], stdout=subprocess.PIPE, text=True)
     if proc.returncode != 0:
         raise SystemExit(f"distill/bake of {student_dir} failed (exit {proc.returncode})")
@@ -108,6 +109,8 @@ def main() -> None:
                     "density (default: the preset's)")
     ap.add_argument("--consistency", type=float, help="the consistency loss's weight for K > 1 (default: the "
                     "preset's)")
+    ap.add_argument("--camera-radius", type=float, default=1.5, help="bake each submodel from the training cameras "
+                    "within this many cell widths of its centre (0: its own; assets_kK_rR/ unless 1.5)")
     ap.add_argument("--boundary-views", type=int, default=3)
     ap.add_argument("--work", help="keep everything here and reuse what is finished (default: a temporary folder)")
     args = ap.parse_args()
@@ -132,7 +135,8 @@ def main() -> None:
     ds = load_dataset(scene)
     test_origins = np.stack([ds.frames[i].camera.origin for i in ds.split("test")])
     for k in (int(v) for v in args.ks.split(",")):
-        student_dir, assets = work / f"student_k{k}", work / f"assets_k{k}"
+        student_dir = work / f"student_k{k}"
+        assets = work / (f"assets_k{k}" if args.camera_radius == 1.5 else f"assets_k{k}_r{args.camera_radius:g}")
         cfg = distill_preset("cpu-small", k)
         cfg = replace(cfg, steps=args.steps, student=StudentConfig(sparse_resolution=args.sparse,
                                                                      triplane_resolution=args.triplane))
@@ -140,21 +144,24 @@ def main() -> None:
             cfg = replace(cfg, warm_start=args.warm_start == "on")
         if args.consistency is not None:
             cfg = replace(cfg, consistency_mult=args.consistency)
-        rss_file = work / f"peak_rss_k{k}.json"
+        rss_file = work / f"peak_rss_{assets.name}.json"
         warm = {"warm_start": True} if cfg.warm_start else {}  # students from before the option had none
         need_distill = not finished_with(student_dir, "distill", steps=args.steps, student=asdict(cfg.student),
                                          consistency_mult=cfg.consistency_mult, **warm)
-        if need_distill or not (assets / "bake.json").is_file() or not rss_file.is_file():
+        baked_with = json.loads((assets / "bake.json").read_text()).get("camera_radius", 0.0) \
+            if (assets / "bake.json").is_file() else None  # bakes before the option used a submodel's own cameras
+        if need_distill or baked_with != args.camera_radius or not rss_file.is_file():
             if need_distill:
                 shutil.rmtree(student_dir, ignore_errors=True)
             shutil.rmtree(assets, ignore_errors=True)
-            rss = distill_and_bake(teacher_dir, student_dir, assets, cfg, need_distill)
+            rss = distill_and_bake(teacher_dir, student_dir, assets, cfg, need_distill, args.camera_radius)
             rss_file.write_text(json.dumps({"bytes": rss, "of": "distill + bake" if need_distill else "bake only"}))
         s_eval = evaluate_student(student_dir, write_images=False)
         b_eval = evaluate_assets(assets, write_images=False)
         sizes = asset_summary(assets)
         result["per_k"][k] = {
             "num_submodels": b_eval["num_submodels"], "distill_seconds": run_seconds(student_dir),
+            "bake_camera_radius": args.camera_radius,
             "bake_seconds": round(json.loads((assets / "bake.json").read_text())["seconds"], 1),
             **{f"peak_rss_{key}": value for key, value in json.loads(rss_file.read_text()).items()},
             "disk_bytes": b_eval["disk_bytes"],

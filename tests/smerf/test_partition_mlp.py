@@ -11,6 +11,21 @@ from nerfbake.smerf.partition import Partition, PartitionError
 from nerfbake.smerf.seams import boundary_cameras
 
 
+def test_baking_cameras_are_those_within_one_and_a_half_cells_of_the_centre():
+    """SMERF appendix C.2: a submodel's occupancy grid is built from the cameras within 1.5 cell widths of its centre,
+    its own cameras always among them."""
+    cams = np.array([[x, 0.0, 0.0] for x in np.linspace(-1, 1, 21)] + [[-1.0, 1.0, 1.0], [1.0, 1.0, 1.0]])
+    part = Partition.from_cameras(cams, k=2)
+    for p in range(part.num_alive):
+        own = part.assign(cams) == p
+        centre = part.cell_centre(part.params_to_sm[p])
+        dist = np.linalg.norm(part.normalize(cams) - centre, axis=1) / (2 / part.k)  # in cell widths
+        near = part.baking_cameras(cams, p)
+        np.testing.assert_array_equal(near, own | (dist <= 1.5))
+        assert near.sum() > own.sum()  # neighbours' cameras join in
+        np.testing.assert_array_equal(part.baking_cameras(cams, p, radius=0.0), own)
+
+
 def test_partition_assigns_cameras_by_cell_and_inf_norm():
     rng = np.random.default_rng(0)
     # cameras in two rooms, diagonal from each other: only the cells they occupy come alive

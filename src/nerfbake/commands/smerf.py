@@ -35,12 +35,15 @@ class Bake(Command):
     student: str = option(help="a folder written by nerfbake distill")
     out: str = option(help="the asset folder to write (sm_XXX/ per submodel)")
     ray_stride: int = option(2, "use every n-th pixel row/column for the alive voxels")
+    camera_radius: float = option(1.5, "a submodel's alive voxels come from the training cameras within this many "
+                                  "cell widths of its centre (SMERF's 1.5; 0: its own cameras only)")
     overwrite: bool = option(False, OVERWRITE)
 
     def run(self) -> dict:
         from nerfbake.smerf.bake import bake_student
 
-        return bake_student(self.student, self.out, stride=self.ray_stride, overwrite=self.overwrite)
+        return bake_student(self.student, self.out, stride=self.ray_stride, overwrite=self.overwrite,
+                            camera_radius=self.camera_radius)
 
     def text(self, s: dict) -> str:
         return (f"baked {s['num_submodels']} submodel(s) into {self.out} in {s['seconds']:.0f} s "

@@ -303,8 +303,11 @@ def write_submodel(folder: Path, student, params_idx: int, alive: torch.Tensor, 
             "atlas": [sizes["atlas_width"], sizes["atlas_height"], sizes["atlas_depth"]]}
 
 
-def bake_student(student_dir: str | Path, out: str | Path, stride: int = 2, overwrite: bool = False) -> dict:
+def bake_student(student_dir: str | Path, out: str | Path, stride: int = 2, overwrite: bool = False,
+                 camera_radius: float = 1.5) -> dict:
     """Bake every alive submodel of a student into ``out/sm_XXX``; returns statistics (also ``out/bake.json``).
+    A submodel's alive voxels come from the training cameras within ``camera_radius`` cell widths of its centre
+    (:meth:`Partition.baking_cameras`; 0: its own cameras only).
 
     Under ``torchrun`` the submodels are dealt out over the ranks (submodel p on rank p mod N), all writing into
     one temporary folder beside ``out`` that rank 0 completes and renames once every rank is done."""
@@ -319,7 +322,8 @@ def bake_student(student_dir: str | Path, out: str | Path, stride: int = 2, over
     ds = load_dataset(meta["data"], downscale=meta.get("downscale", 1.0), normalize=meta.get("normalize", "auto"))
     part = student.partition
     train_cams = [ds.frames[i].camera for i in ds.split("train")]
-    home = part.assign(np.stack([c.origin for c in train_cams]))
+    origins = np.stack([c.origin for c in train_cams])
+    home = part.assign(origins)
     test_cams = [ds.frames[i].camera for i in ds.split("test")]
     test_home = part.assign(np.stack([c.origin for c in test_cams])) if test_cams else np.zeros(0, int)
     threshold = cfg.cull_alpha[1]
@@ -342,8 +346,8 @@ def bake_student(student_dir: str | Path, out: str | Path, stride: int = 2, over
     stats = {"submodels": {}}
     try:
         for p in range(dp.rank, part.num_alive, dp.world):
-            cams = [c for c, h in zip(train_cams, home) if h == p]
-            if not cams:
+            cams = [c for c, near in zip(train_cams, part.baking_cameras(origins, p, camera_radius)) if near]
+            if not any(home == p):
                 raise BakeError(f"submodel {p} has no training cameras; the partition and the dataset disagree")
             with progress_bar(f"bake sm_{part.params_to_sm[p]:03d}: alive voxels", len(cams), unit="view") as adv:
                 alive = alive_voxels(student, teacher, cams, p, threshold, bg, stride, progress=adv)
@@ -369,6 +373,7 @@ def bake_student(student_dir: str | Path, out: str | Path, stride: int = 2, over
                           "num_submodels": part.num_alive, "partition": part.to_json(), "data": meta["data"],
                           "downscale": meta.get("downscale", 1.0),
                           "normalize": meta.get("normalize", "auto"), "threshold": threshold, "ray_stride": stride,
+                          "camera_radius": camera_radius,
                           "ranks": dp.world})
             (tmp / "bake.json").write_text(json.dumps(stats, indent=2))
             replace_folder(tmp, out)

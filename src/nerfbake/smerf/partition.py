@@ -130,6 +130,16 @@ class Partition:
                             out.append(p)
         return out
 
+    def baking_cameras(self, world_origins: np.ndarray, params_idx: int, radius: float = 1.5) -> np.ndarray:
+        """(N,) bool: the cameras whose origins lie within ``radius`` cell widths of the submodel's cell centre, and
+        those it renders (SMERF appendix C.2: a submodel's occupancy grid comes from the cameras within 1.5 units of
+        its centre, cells being 1 unit wide). A submodel's own cameras alone leave holes where its test views look
+        at what none of them saw, which the baked scene draws as background."""
+        p = np.atleast_2d(self.normalize(world_origins))
+        centre = self.cell_centre(self.params_to_sm[params_idx])
+        near = np.linalg.norm(p - centre, axis=-1) * self.k / 2.0 <= radius
+        return near | (self.assign(world_origins) == params_idx)
+
     def mlp_position(self, world_points: np.ndarray, params_idx: int) -> np.ndarray:
         """Where the deferred-MLP lattice of a submodel is sampled: the camera relative to the cell centre, in
         cell half-widths ([-1, 1]^3 over the cell; the viewer's ``(cam - centre) * K``)."""
