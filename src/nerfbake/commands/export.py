@@ -29,9 +29,10 @@ class Export(Command):
     fit_steps: int = option(0, "fit the Gaussians to the teacher's renders of training views (or, with --tree, the "
                             "training photos of --data) for this many steps of one 128x128 crop each")
     fit_views: int = option(20, "training views to fit to (evenly spread)")
-    viewer_rules: str = option("web", "the compositing the fit and the evaluation follow: web (gsplat.js, SuperSplat, "
-                               "Spark and the other web viewers: a cut at 2.83 sigma, no alpha cap, 8-bit colours) "
-                               "or reference (the 3DGS CUDA rasteriser)", choices=("web", "reference"))
+    viewer_rules: str = option("web", "the drawing rules the fit and the evaluation follow: web (gsplat.js and the "
+                               "other antimatter15/splat descendants: a quarter of the reference's low-pass, a cut at "
+                               "2.83 sigma, no alpha cap, 8-bit colours) or reference (the 3DGS CUDA rasteriser)",
+                               choices=("web", "reference"))
     overwrite: bool = option(False, OVERWRITE)
     json: bool = option(False, JSON)
 

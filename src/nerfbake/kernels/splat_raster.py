@@ -85,7 +85,8 @@ def pixel_tile(pid: int, width: int, tiles_x: int):
 def composite_forward(xy: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec3), opacity: wp.array(dtype=float),
                       color: wp.array(dtype=wp.vec3), tile_start: wp.array(dtype=wp.int32),
                       tile_splats: wp.array(dtype=wp.int32), width: int, tiles_x: int, rules: wp.vec4,
-                      background: wp.vec3, first: int, out_rgb: wp.array(dtype=wp.vec3), out_end: wp.array(dtype=wp.int32)):
+                      background: wp.vec3, first: int, out_rgb: wp.array(dtype=wp.vec3),
+                      out_end: wp.array(dtype=wp.int32)):
     """One pixel's colour, and where in its tile's list compositing stopped (for the backward); ``rules`` is
     (max_alpha, min_alpha, cutoff, min_transmittance)."""
     pid = wp.tid() + first

@@ -4,12 +4,13 @@ same in plain torch, which the kernels are checked against; both differentiable 
 
 Per Gaussian: the mean into the camera (OpenGL axes: the camera looks down -Z, image rows go down), the 3D
 covariance R S S^T R^T projected with the perspective Jacobian (EWA splatting) plus 0.3 px^2 on the diagonal (the
-reference's low-pass; the web viewers' is a quarter of it), the colour ``max(SH(d) . k + 0.5, 0)`` for the direction from the camera to the mean. Per
-pixel: ``alpha = min(0.99, opacity * exp(-0.5 d^T Sigma^-1 d))`` (pixel centres at +0.5), alphas under 1/255 skipped,
-front-to-back compositing by the means' depth, stopping before the Gaussian that would take the transmittance under
-1e-4 (as the reference code does), the background behind. Those are the :data:`REFERENCE` rules; every function here
-also draws under the web viewers' (:data:`WEB`: see ``kernels/splat_raster.py``). Pixels are processed in 16 x 16
-tiles, each against the Gaussians whose 3-sigma box touches it.
+reference's low-pass; the web viewers' is a quarter of it), the colour ``max(SH(d) . k + 0.5, 0)`` for the direction
+from the camera to the mean. Per pixel: ``alpha = min(0.99, opacity * exp(-0.5 d^T Sigma^-1 d))`` (pixel centres at
++0.5), alphas under 1/255 skipped, front-to-back compositing by the means' depth, stopping before the Gaussian that
+would take the transmittance under 1e-4 (as the reference code does), the background behind. Those are the
+:data:`REFERENCE` rules; every function here also draws under the web viewers' (:data:`WEB`: see
+``kernels/splat_raster.py``). Pixels are processed in 16 x 16 tiles, each against the Gaussians whose 3-sigma box
+touches it.
 """
 from __future__ import annotations
 
@@ -116,7 +117,8 @@ def rasterize_reference(means, log_scales, quats, opacity_logits, sh, camera: Ca
             power = -0.5 * (ic[None, :, 0, 0] * delta[..., 0] ** 2 + 2 * ic[None, :, 0, 1] * delta[..., 0] * delta[..., 1]
                             + ic[None, :, 1, 1] * delta[..., 1] ** 2)
             alpha = (opacity[sel][None] * torch.exp(power.clamp(max=0.0))).clamp(max=rules.max_alpha)
-            alpha = torch.where((alpha >= rules.min_alpha) & (power >= -rules.cutoff), alpha, torch.zeros_like(alpha))
+            drawn = (alpha >= rules.min_alpha) & (power >= -rules.cutoff)
+            alpha = torch.where(drawn, alpha, torch.zeros_like(alpha))
             after = torch.cumprod(1 - alpha, 1)  # transmittance behind each Gaussian
             trans = torch.cat([torch.ones_like(alpha[:, :1]), after[:, :-1]], 1)
             weight = torch.where(after >= rules.min_transmittance, alpha * trans, torch.zeros_like(alpha))
