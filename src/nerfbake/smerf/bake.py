@@ -2,7 +2,7 @@
 folder per alive submodel). The steps follow the authors' baker (``shared/reference/smerf_anchors.md`` section 3):
 
 1. alive voxels at the triplane resolution: render the training cameras within 1.5 cell widths of the submodel's
-   centre (SMERF appendix C.2; its own cameras alone left a K = 2 bake 6.7 dB under its student) on the teacher's
+   centre (SMERF appendix C.2; its own cameras alone left a K = 2 bake 6.3 dB under its student) on the teacher's
    intervals with the final alpha-culling threshold; every sample whose weight and whose alpha at the viewer's step
    size exceed it marks the 8 voxels around it;
 2. 3x3x3 median filter (majority of 27);
