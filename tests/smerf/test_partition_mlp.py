@@ -6,7 +6,7 @@ import torch
 
 from nerfbake.smerf.assets import VIEWER_FROM_TRAIN
 from nerfbake.smerf.baked_render import deferred_mlp_weights
-from nerfbake.smerf.deferred_mlp import GridMLP
+from nerfbake.smerf.deferred_mlp import GridMLP, unique_rows
 from nerfbake.smerf.partition import Partition, PartitionError
 from nerfbake.smerf.seams import boundary_cameras
 
@@ -148,7 +148,9 @@ def test_grid_mlp_forward_equals_per_ray_interpolated_layers():
     with torch.no_grad():
         for p in list(mlp.kernels) + list(mlp.biases):
             p.add_(torch.randn(p.shape, generator=g) * 0.3)
-    x, pos = torch.rand(40, 7, generator=g), torch.rand(40, 3, generator=g) * 2.4 - 1.2
+    # Rays share cameras, as in training: 6 camera positions, each seen from several submodels.
+    cams = torch.rand(6, 3, generator=g) * 2.4 - 1.2
+    x, pos = torch.rand(40, 7, generator=g), cams[torch.randint(0, 6, (40,), generator=g)]
     idx = torch.randint(0, 3, (40,), generator=g)
     h = x
     layers = mlp.weights_at(idx, pos)
@@ -156,6 +158,17 @@ def test_grid_mlp_forward_equals_per_ray_interpolated_layers():
         h = torch.einsum("ri,rio->ro", h, k) + b
         h = torch.nn.functional.elu(h) if i < 2 else torch.sigmoid(h)
     assert torch.allclose(mlp(x, idx, pos), h, atol=1e-5)
+
+
+def test_unique_rows_groups_equal_rows_as_torch_unique_does():
+    g = torch.Generator().manual_seed(3)
+    rows = torch.randn(7, 4, generator=g)
+    key = rows[torch.randint(0, 7, (300,), generator=g)]
+    uniq, inv = unique_rows(key)
+    ref, _ = torch.unique(key, dim=0, return_inverse=True)
+    assert uniq.shape == ref.shape == (7, 4)
+    assert torch.equal(uniq[inv], key)
+    assert sorted(map(tuple, uniq.tolist())) == sorted(map(tuple, ref.tolist()))
 
 
 def test_deferred_mlp_json_reads_back_the_same_float32_weights():

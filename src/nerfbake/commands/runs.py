@@ -93,7 +93,7 @@ class Demo(Command):
     spp: int = option(32)
     teacher_steps: int | None = option(None, "hash-teacher steps (default 1000)")
     octree_grid: int | None = option(None, "PlenOctree dense grid side (default 128)")
-    distill_steps: int | None = option(None, "SMERF distillation steps (default 600)")
+    distill_steps: int | None = option(None, "SMERF distillation steps (default 1200)")
     student_sparse: int | None = option(None, "SMERF sparse grid side S (default 64)")
     student_triplane: int | None = option(None, "SMERF triplane side T (default 256)")
     eval_views: int = option(6)

@@ -40,6 +40,18 @@ def deferred_inputs(acc: dict, view_dirs: torch.Tensor, background, combine_op: 
     return torch.cat(parts + [pos_enc(v)], -1)
 
 
+def unique_rows(key: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The distinct rows of ``key`` (U, C) and each row's index among them (R,). On the CPU, rows are compared as
+    raw bytes with numpy: ``torch.unique(dim=0)`` there compares rows one tensor op at a time, 18 ms for a 4608-ray
+    batch against 2 ms, a tenth of a distillation step of the demo."""
+    if key.device.type != "cpu":
+        return torch.unique(key, dim=0, return_inverse=True)
+    k = np.ascontiguousarray(key.detach().numpy())
+    rows = k.view(np.dtype((np.void, k.dtype.itemsize * k.shape[1]))).reshape(-1)
+    _, first, inv = np.unique(rows, return_index=True, return_inverse=True)
+    return key[torch.from_numpy(first)], torch.from_numpy(inv.reshape(-1))
+
+
 class GridMLP(nn.Module):
     """SMERF's grid of deferred MLPs: one small MLP (in_dim -> width -> width -> 3) per vertex of a P^3 lattice per
     submodel, whose weights are trilinearly interpolated at the camera position."""
@@ -84,8 +96,7 @@ class GridMLP(nn.Module):
         """Interpolate the layers once per distinct (submodel, position) - in the viewer one per frame, in training
         one per camera - then apply them per ray. Feeding every ray its own position works but costs a gather of
         8 kernels per ray in the forward and a scatter of as many in the backward."""
-        key = torch.cat([params_idx[:, None].to(pos.dtype), pos], 1)
-        uniq, inv = torch.unique(key, dim=0, return_inverse=True)
+        uniq, inv = unique_rows(torch.cat([params_idx[:, None].to(pos.dtype), pos], 1))
         layers = self.weights_at(uniq[:, 0].long(), uniq[:, 1:])
         # Rows picked with a one-hot matmul rather than k[inv]: the backward of CPU advanced indexing adds in a
         # thread-dependent order, which made training runs differ from rerun to rerun.
