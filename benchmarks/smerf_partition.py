@@ -83,6 +83,12 @@ print(json.dumps({"peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_
 """
 
 
+def interrupted(stage: str, folder: Path) -> SystemExit:
+    """The exit for a run that a signal stopped before its last step: no figures come from a half-trained model."""
+    return SystemExit(f"the {stage} in {folder} stopped before its last step (interrupted); rerun the benchmark to "
+                      "run it again")
+
+
 def distill_and_bake(teacher_dir: Path, student_dir: Path, assets: Path, cfg, need_distill: bool,
                      camera_radius: float) -> int:
     """Distil (unless finished) and bake in a child process; its peak RSS in bytes (this K's alone)."""
@@ -91,8 +97,7 @@ def distill_and_bake(teacher_dir: Path, student_dir: Path, assets: Path, cfg, ne
     if proc.returncode != 0:
         raise SystemExit(f"distill/bake of {student_dir} failed (exit {proc.returncode})")
     if not json.loads((student_dir / "config.json").read_text()).get("complete"):  # stopped by a signal
-        raise SystemExit(f"the distillation in {student_dir} stopped before its last step (interrupted); rerun the "
-                         "benchmark to run it again")
+        raise interrupted("distillation", student_dir)
     return int(json.loads(proc.stdout.strip().splitlines()[-1])["peak_rss_bytes"])
 
 
@@ -127,8 +132,7 @@ def main() -> None:
         shutil.rmtree(teacher_dir, ignore_errors=True)
         train_teacher(scene, teacher_dir, replace(preset("hash", "cpu-small"), steps=args.teacher_steps))
         if not finished_with(teacher_dir, "train", steps=args.teacher_steps):  # stopped by a signal: no figures
-            raise SystemExit(f"the teacher in {teacher_dir} stopped before its last step (interrupted); rerun the "
-                             "benchmark to run it again")
+            raise interrupted("teacher", teacher_dir)
     teacher_eval = evaluate_teacher(teacher_dir, "test", write_images=False)
     result = {"git": git_revision(), "scene": f"{args.scene} {args.size}x{args.size}, {args.views} training views, spp {args.spp}",
               "teacher": {"steps": args.teacher_steps, "seconds": run_seconds(teacher_dir),
