@@ -3,7 +3,8 @@
 stage times, peak memory and disk, plus one picture per scene (ground truth | teacher | octree | SMERF baked).
 
     python benchmarks/real_captures.py --work outputs/real [--scenes bonsai,fern,fox,phone]
-        [--bonsai-images 100] [--downscale bonsai=2] [--teacher-steps N] [--distill-steps N] [--eval-views 25]
+        [--bonsai-images 100] [--bonsai-matcher exhaustive] [--downscale bonsai=2] [--teacher-steps N]
+        [--distill-steps N] [--eval-views 25]
         [--pipeline-args '--octree-grid 128 ...']
 
 Scenes (``../shared/data``): bonsai_800 (292 photos, no poses; every 8th photo held out), fern (LLFF images_8),
@@ -54,7 +55,8 @@ def processed(name: str, source: list[str], work: Path, log: Path) -> tuple[Path
 
 def scene_sources(args) -> dict[str, dict]:
     return {
-        "bonsai": {"process": ["--images", str(SHARED / "bonsai_800" / "images"), "--max-images", str(args.bonsai_images)]},
+        "bonsai": {"process": ["--images", str(SHARED / "bonsai_800" / "images"), "--max-images", str(args.bonsai_images),
+                               "--matcher", args.bonsai_matcher]},
         "fern": {"data": SHARED / "fern"},
         "fox": {"data": SHARED / "fox"},
         "phone": {"process": ["--video", str(SHARED / "phone_video" / "beer.mp4")]},
@@ -67,6 +69,8 @@ def main() -> None:
     ap.add_argument("--scenes", default="bonsai,fern,fox,phone")
     ap.add_argument("--bonsai-images", type=int, default=100,
                     help="an even subset of bonsai_800's 292 photos (SfM time grows fast with it: 100 took ~6 min)")
+    ap.add_argument("--bonsai-matcher", default="exhaustive", choices=("exhaustive", "sequential"),
+                    help="SfM matching for bonsai (sequential: each photo with its capture-order neighbours, for all 292)")
     ap.add_argument("--downscale", default="bonsai=2", help="per-scene downscale, e.g. bonsai=2,fox=4 (others: automatic)")
     ap.add_argument("--teacher-steps", type=int)
     ap.add_argument("--distill-steps", type=int)
