@@ -41,14 +41,37 @@ def run(cmd: list[str], log: Path) -> float:
     return time.perf_counter() - t
 
 
+def option_mismatches(report: dict, source: list[str]) -> list[str]:
+    """Where a finished ``process_report.json`` was made with other options than ``source`` asks for (its matcher,
+    or how many photos it took under ``--max-images``)."""
+    asked = dict(zip(source[::2], source[1::2]))
+    done = report.get("options", {})
+    wrong = []
+    if "--matcher" in asked and report.get("matcher") != asked["--matcher"]:
+        wrong.append(f"matcher {report.get('matcher')} (asked {asked['--matcher']})")
+    if "--max-images" in asked:
+        n, had = int(asked["--max-images"]), done.get("max_images")
+        took_all_within = had is None and report.get("num_images", n + 1) <= n
+        if had != n and not took_all_within:
+            wrong.append(f"{report.get('num_images')} photos (asked --max-images {n})")
+    return wrong
+
+
 def processed(name: str, source: list[str], work: Path, log: Path) -> tuple[Path, dict]:
-    """The dataset ``nerfbake process`` makes from ``source`` (reused when already there) and its report."""
-    out = work / f"{name}_data"  # reused when there: delete it to process again with other options
-    if not (out / "process_report.json").is_file():
+    """The dataset ``nerfbake process`` makes from ``source`` (reused when already there and made with the same
+    options) and its report."""
+    out = work / f"{name}_data"
+    report_path = out / "process_report.json"
+    if report_path.is_file():
+        wrong = option_mismatches(json.loads(report_path.read_text()), source)
+        if wrong:  # structure from motion can take most of an hour: never delete a finished one silently
+            sys.exit(f"{out} was processed with other options: {'; '.join(wrong)}. Delete it to process again, "
+                     "or pass another --work")
+    else:
         if out.exists():
             shutil.rmtree(out)
         run([sys.executable, "-m", "nerfbake", "process", *source, "--out", str(out)], log)
-    report = json.loads((out / "process_report.json").read_text())
+    report = json.loads(report_path.read_text())
     return out, {k: report[k] for k in ("num_images", "num_registered", "mean_reprojection_error_px", "num_points3D",
                                         "matcher", "timings_s") if k in report}
 

@@ -422,8 +422,9 @@ def demo_config(out: str, data: str, eval_views: int = 6) -> PipelineConfig:
     than with rays (same teacher at 33.49 dB, S = 64, T = 256, baked PSNR on the 6 test views: 600 steps of 4608
     rays 30.45 dB in 219 s; 1200 of 4608 31.39 in 423 s; 1200 of 2304 31.22 in 367 s, and with 8192 empty-space
     points 31.25 in 209 s; 1600 of 2304 30.96: about 0.3 dB is run-to-run spread). At 600 steps a larger S (128: +0.1
-    dB), origin jitter (0.15: -0.1) and the warm start (-0.1) bought nothing. T = 512 scored 31.67 and 31.74 (with a
-    doubled grid learning rate) but doubles the viewer's steps through the scene and adds ~40 s; the demo keeps 256."""
+    dB), origin jitter (0.15: -0.1) and the warm start (-0.1; on by default for what it buys real captures and
+    K > 1) bought nothing. T = 512 scored 31.67 and 31.74 (with a doubled grid learning rate) but doubles the
+    viewer's steps through the scene and adds ~40 s; the demo keeps 256."""
     distill = replace(distill_preset("cpu-small"), batch_patches=256, empty_space_points=8192)
     return PipelineConfig(data=data, out=out, preset="cpu-small", eval_views=eval_views, teacher_steps=1000,
                           octree_grid=128, octree_epochs=2, octree_lr=1e5, distill_steps=1200, student_sparse=64,

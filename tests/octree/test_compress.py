@@ -8,7 +8,7 @@ import pytest
 
 from nerfbake.cli import main
 from nerfbake.data.formats import load_dataset
-from nerfbake.octree.compress import compress_tree, kmeans_refine, median_cut
+from nerfbake.octree.compress import QUALITY_FLOOR_DB, compress_tree, kmeans_refine, median_cut
 from nerfbake.octree.evaluate import ViewLoss
 from nerfbake.octree.io import load_tree, volrend_problems
 
@@ -45,7 +45,7 @@ def test_measured_allocation_keeps_its_target_and_is_what_the_file_holds(tiny_tr
     # the loss measured while choosing is the loss of the file a reader loads
     ds = load_dataset(tiny_scene)
     raw = load_tree(tiny_tree)
-    loss = ViewLoss(raw, ds, 2)
+    loss = ViewLoss(raw, ds, 2, quality_floor_db=QUALITY_FLOOR_DB)
     assert loss(load_tree(tmp_path / "loose.npz")) == pytest.approx(loose["measured_loss_db"], abs=1e-4)
     # the search went below 16 bits somewhere, and tried at least one rung that broke the target or hit the ladder's end
     assert min(loose["band_bits"]) < 16
@@ -67,6 +67,23 @@ def test_measured_allocation_keeps_its_target_and_is_what_the_file_holds(tiny_tr
     assert info["compression"]["measured_loss_db"] == pytest.approx(out["measured_loss_db"])
     assert main(["octree", "compress", "--tree", str(tiny_tree), "--out", str(tmp_path / "fixed.npz"), "--sigma-thresh", "0.1"]) == 0
     assert "no --data" in capsys.readouterr().out
+
+
+def test_a_poor_tree_keeps_its_colours(tiny_tree, tiny_scene, tmp_path):
+    """Against the photos alone a poor tree hides the error compression adds (a 13 dB room lost 0.2 dB with 4 colours
+    for its diffuse band and its hues shifted); the added error is charged as if the tree scored QUALITY_FLOOR_DB."""
+    ds, raw = load_dataset(tiny_scene), load_tree(tiny_tree)
+    loss = ViewLoss(raw, ds, 2, quality_floor_db=QUALITY_FLOOR_DB)
+    assert loss.reference < QUALITY_FLOOR_DB  # the case this guards: a tree below the floor
+    out = compress_tree(tiny_tree, tmp_path / "c.npz", data=tiny_scene, target_db=0.5, views=2, sigma_thresh=0.1)
+    assert out["target_met"]
+    added = np.mean([np.mean((c - r) ** 2) for c, r in zip(loss.renders(load_tree(tmp_path / "c.npz")),
+                                                            loss.first_renders)])
+    assert added <= (10 ** (0.5 / 10) - 1) * 10 ** (-QUALITY_FLOOR_DB / 10) * 1.001
+    # a 2-bit diffuse band costs this tree more under the floor than its drop against the photos says
+    two_bits = compress_tree(tiny_tree, tmp_path / "two.npz", band_bits=(2,), sigma_thresh=0.1)
+    coarse = load_tree(two_bits["tree"])
+    assert ViewLoss(raw, ds, 2)(coarse) < loss(coarse)
 
 
 def test_compression_benchmark_prints_every_row(tiny_tree, tiny_scene, tmp_path):

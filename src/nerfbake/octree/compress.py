@@ -110,6 +110,7 @@ SIGMA_LADDER = (2.0, 4.0)  # and then for the density below which leaves are dro
 CODEBOOKS = ("kmeans", "median")
 KMEANS_ITERS = 4
 TARGET_DB = 0.5
+QUALITY_FLOOR_DB = 25.0  # added error is charged as if the tree scored at least this (evaluate.ViewLoss)
 MEASURE_VIEWS = 4
 
 
@@ -333,7 +334,8 @@ def compress_tree(tree_path: str | Path, out: str | Path, bits: int = 16, retain
     if not q.alive.any():
         raise ValueError(f"{tree_path}: no leaf has sigma > {sigma_thresh}; lower --sigma-thresh")
     if band_bits is None and data is not None:
-        loss = ViewLoss(tree, load_dataset(data, downscale=downscale, normalize=normalize), views)
+        loss = ViewLoss(tree, load_dataset(data, downscale=downscale, normalize=normalize), views,
+                        quality_floor_db=QUALITY_FLOOR_DB)
         choice = choose_allocation(q, loss, retain, sigma_thresh, target_db)
         band_bits, sigma_thresh = choice["bits_per_band"], choice["sigma_thresh"]
         choice["allocation"] = "measured"

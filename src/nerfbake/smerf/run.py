@@ -44,7 +44,7 @@ class DistillConfig:
     reassign_fraction: float = 0.2
     downscale: float | None = dc_field(default=None, metadata={
         "help": "image downscale of the training photos (default: the teacher's)"})
-    warm_start: bool = False  # start the sparse density from the teacher's (distill.warm_start_density)
+    warm_start: bool = True  # start the sparse density from the teacher's (distill.warm_start_density)
     core_quantile: float = 0.1  # K = 1: the share of the training views' surfaces kept in the core (Partition)
     cull_alpha: tuple[float, float] = (5e-4, 5e-3)
     cull_window: tuple[float, float] = (0.4, 0.8)  # fractions of the run over which culling ramps up
@@ -88,6 +88,7 @@ def distill_preset(name: str, k: int = 1) -> DistillConfig:
 def config_from_dict(d: dict) -> DistillConfig:
     """The config recorded in a student's ``config.json`` (lists back to tuples)."""
     d = dict(d)
+    d.setdefault("warm_start", False)  # students distilled before the option started cold
     student = StudentConfig(**d.pop("student"))
     for key in ("geometry_mult", "cull_alpha", "cull_window"):
         d[key] = tuple(d[key])
