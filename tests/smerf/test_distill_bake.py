@@ -86,19 +86,22 @@ def test_occupancy_packing_and_distance_grid_follow_the_viewer_rules():
 
 def test_distillation_learns_and_resumes_to_the_same_student(tiny_teacher, tiny_student, tmp_path):
     from nerfbake.data.formats import load_dataset
-    from nerfbake.smerf.distill import render_student_camera
+    from nerfbake.smerf.distill import render_student_camera, warm_start_density
     from nerfbake.smerf.student import Student
     from nerfbake.teacher.evaluate import render_camera
     from nerfbake.teacher.run import load_teacher
 
     trained, cfg, meta = load_student(tiny_student)
-    untrained = Student(cfg.student, trained.partition, cfg.seed)
     teacher = load_teacher(tiny_teacher)[0]
+    start = Student(cfg.student, trained.partition, cfg.seed)  # the student as distillation starts it
+    assert cfg.warm_start  # the default
+    warm_start_density(start, teacher)
     ds = load_dataset(meta["data"])
     cam = ds.frames[ds.split("test")[0]].camera
     target = render_camera(teacher, cam)["rgb"]
-    err = [float(np.mean((render_student_camera(s, teacher, cam, (1.0, 1.0, 1.0)) - target) ** 2)) for s in (untrained, trained)]
-    assert 10 * np.log10(err[0] / err[1]) > 3, err  # at least 3 dB closer to the teacher than at the start
+    err = [float(np.mean((render_student_camera(s, teacher, cam, (1.0, 1.0, 1.0)) - target) ** 2)) for s in (start, trained)]
+    # 60 steps on the 32-pixel scene: 2.85 dB from the warm start (3.16 from a cold start when that was the default)
+    assert 10 * np.log10(err[0] / err[1]) > 2.5, err
     cfg = tiny_distill_config(steps=30)
     a = distill(tiny_teacher, tmp_path / "a", cfg)
     distill(tiny_teacher, tmp_path / "b", cfg, stop_at=20)
