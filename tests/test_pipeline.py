@@ -116,20 +116,23 @@ def test_a_setting_added_later_leaves_earlier_fingerprints_as_they_were():
     assert fingerprints(STAGES, {**settings, "normalize": "none"})["teacher"] != fingerprints(before, settings)["teacher"]
 
 
-def test_a_method_that_cannot_run_on_a_scene_is_skipped_with_a_reason(tmp_path):
+def test_a_method_that_cannot_run_on_a_scene_is_skipped_with_a_reason(tiny_scene, tmp_path):
     from nerfbake.pipeline import STAGES, skip_reason
     from nerfbake.train.loop import write_json_atomic
 
     octree = next(s for s in STAGES if s.name == "octree_build")
     smerf = next(s for s in STAGES if s.name == "distill")
-    for kind, contracted, skipped in [("forward-facing", True, True), ("unbounded-360", True, False),
-                                      ("object-centric", False, False)]:
+    for kind, contracted, near, skipped in [("forward-facing", True, 0.1, "forward-facing"),
+                                            ("unbounded-360", True, 0.1, None), ("object-centric", False, 2.0, None),
+                                            ("unbounded-360", True, 100.0, "near bound")]:
+        box = {"box_min": [-1.0] * 3, "box_max": [1.0] * 3, "near": near, "contracted": contracted}
         write_json_atomic(tmp_path / "teacher" / "config.json",
-                          {"box": {"contracted": contracted}, "dataset": {"scene_kind": kind}})
+                          {"box": box, "dataset": {"scene_kind": kind}, "data": str(tiny_scene),
+                           "train": {"downscale": 1.0, "normalize": "auto"}})
         reason = skip_reason(octree, tmp_path)
-        assert (reason is not None) == skipped and skip_reason(smerf, tmp_path) is None
+        assert (reason is not None) == bool(skipped) and skip_reason(smerf, tmp_path) is None
         if skipped:
-            assert "forward-facing" in reason and "SMERF" in reason
+            assert skipped in reason and "SMERF" in reason
 
 
 def test_a_pipeline_killed_at_random_moments_resumes_to_the_uninterrupted_results(tiny_scene, tmp_path):

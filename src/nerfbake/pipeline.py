@@ -26,7 +26,7 @@ from typing import Callable
 from nerfbake.data.formats import load_dataset
 from nerfbake.data.synth import SynthConfig, render_dataset
 from nerfbake.errors import NerfbakeError, RunFolderError
-from nerfbake.octree.build import build_octree, build_preset
+from nerfbake.octree.build import build_octree, build_preset, unbuildable_reason
 from nerfbake.octree.compress import compress_tree
 from nerfbake.octree.evaluate import evaluate_tree
 from nerfbake.octree.io import load_tree
@@ -110,18 +110,14 @@ def resolve_downscale(cfg: PipelineConfig) -> tuple[float, str]:
 
 
 def skip_reason(stage: Stage, run: Path) -> str | None:
-    """Why a method cannot run on this scene (the pipeline then skips its stages with that one line), or None.
-
-    The octree route needs something bounded to cover: a forward-facing capture's content lies in front of the
-    cameras, out to infinity, with no box around it that its cameras look into from outside."""
+    """Why a method cannot run on this scene (the pipeline then skips its stages with that one line), or None:
+    the octree route where :func:`unbuildable_reason` finds no box to cover."""
     if stage.method != "octree":
         return None
     meta = json.loads((run / "teacher" / RUN_CONFIG).read_text())
-    kind = meta.get("dataset", {}).get("scene_kind")
-    if meta["box"].get("contracted") and kind == "forward-facing":
-        return ("a PlenOctree covers one bounded box, and this forward-facing capture's content lies in front of its "
-                "cameras out to infinity; use SMERF for it")
-    return None
+    train = meta["train"]
+    cameras = load_dataset(meta["data"], downscale=train["downscale"], normalize=train["normalize"]).cameras("train")
+    return unbuildable_reason(meta, cameras)
 
 
 # --- stages ---------------------------------------------------------------------------------------------------------

@@ -88,15 +88,16 @@ def test_distillation_learns_and_resumes_to_the_same_student(tiny_teacher, tiny_
     from nerfbake.data.formats import load_dataset
     from nerfbake.smerf.distill import render_student_camera, warm_start_density
     from nerfbake.smerf.student import Student
+    from nerfbake.teacher.clearance import CameraClearance
     from nerfbake.teacher.evaluate import render_camera
     from nerfbake.teacher.run import load_teacher
 
     trained, cfg, meta = load_student(tiny_student)
-    teacher = load_teacher(tiny_teacher)[0]
+    teacher, _, tmeta, _ = load_teacher(tiny_teacher)
     start = Student(cfg.student, trained.partition, cfg.seed)  # the student as distillation starts it
     assert cfg.warm_start  # the default
-    warm_start_density(start, teacher)
     ds = load_dataset(meta["data"])
+    warm_start_density(start, teacher, CameraClearance.of_teacher(tmeta, ds.cameras("train")))
     cam = ds.frames[ds.split("test")[0]].camera
     target = render_camera(teacher, cam)["rgb"]
     err = [float(np.mean((render_student_camera(s, teacher, cam, (1.0, 1.0, 1.0)) - target) ** 2)) for s in (start, trained)]
@@ -331,25 +332,56 @@ def test_two_processes_equal_one(tiny_teacher, tmp_path):
 
 def test_warm_start_gives_every_submodel_the_teachers_density(rooms_teacher):
     """After the warm start each alive submodel's sparse grid holds, at its voxel centres, the teacher's density there
-    (per cube unit), down to the floor: the voxel -> contracted point -> world point chain and the row layout agree."""
+    (per cube unit), down to the floor: the voxel -> contracted point -> world point chain and the row layout agree.
+    Within the teacher's near bound of a training camera (its clearance) every voxel starts at the floor."""
     from nerfbake.data.formats import load_dataset
     from nerfbake.smerf.distill import warm_start_density
     from nerfbake.smerf.partition import Partition
     from nerfbake.smerf.student import Student
+    from nerfbake.teacher.clearance import CameraClearance
     from nerfbake.teacher.run import load_teacher
 
     teacher, _, meta, _ = load_teacher(rooms_teacher)
     ds = load_dataset(meta["data"])
     origins = np.stack([ds.frames[i].camera.origin for i in ds.split("train")])
     student = Student(StudentConfig(sparse_resolution=16, triplane_resolution=32), Partition.from_cameras(origins, 2))
-    warm_start_density(student, teacher, floor=-4.0)
+    clearance = CameraClearance(origins, 0.3)  # wider than the rooms' near bound, so that voxels fall inside it
+    warm_start_density(student, teacher, clearance, floor=-4.0)
     gen = torch.Generator().manual_seed(0)
+    cleared = 0
     for sm in range(student.partition.num_alive):
         uvw = torch.randint(0, 16, (400, 3), generator=gen)
         z = (uvw.float() + 0.5) / 16 * 4 - 2
         idx = torch.full((400,), sm)
         got = student.features(z, idx, quantize=False)["density"]
-        want = teacher.density_at(student.world_from_contracted(z, idx)) / student.partition.scale
+        world = student.world_from_contracted(z, idx)
+        inside = torch.from_numpy(np.linalg.norm(world.numpy()[:, None] - origins[None], axis=-1).min(1) <= 0.3)
+        want = torch.where(inside, 0.0, teacher.density_at(world)) / student.partition.scale
         expected = want.clamp_min(math.exp(-5.0))
         assert torch.allclose(got.log(), expected.log(), atol=1e-4), sm
         assert (want > math.exp(-5.0)).any()  # the check saw surfaces, not only the floor
+        cleared += int(inside.sum())
+    assert cleared > 0  # and voxels inside the clearance
+
+
+def test_the_clearance_loss_is_the_opacity_of_the_stretch_in_front_of_the_teachers_near_bound():
+    """A fresh student has density 1 per cube unit everywhere: each ray's first ``radius`` world units hold
+    optical depth radius x scale, whatever points estimate it; the loss is that stretch's opacity, and its gradient
+    lowers the density there (raises nothing)."""
+    from nerfbake.smerf.distill import clearance_loss
+    from nerfbake.smerf.partition import Partition
+    from nerfbake.smerf.student import Student
+    from nerfbake.teacher.clearance import CameraClearance
+
+    origins = np.array([[-0.5, 0.0, 0.0], [0.5, 0.2, -0.1], [0.0, -0.4, 0.3]])
+    partition = Partition.from_cameras(origins, 1)
+    student = Student(StudentConfig(sparse_resolution=16, triplane_resolution=32), partition)
+    clearance = CameraClearance(origins, 0.3)
+    gen = torch.Generator().manual_seed(0)
+    d = torch.nn.functional.normalize(torch.randn(3, 3, generator=gen), dim=-1)
+    u = torch.rand(3, 5, generator=gen)
+    loss = clearance_loss(student, clearance, torch.tensor(origins).float(), d, torch.zeros(3, dtype=torch.long), u,
+                          quantize=False)
+    assert abs(loss.item() - (1 - math.exp(-0.3 * partition.scale))) < 1e-5
+    loss.backward()
+    assert student.sparse.grad[:, 0].sum() > 0 and (student.sparse.grad[:, 0] >= 0).all()

@@ -27,9 +27,10 @@ from nerfbake.octree.io import save_tree
 from nerfbake.octree.tree import Octree, tree_from_cells
 from nerfbake.progress import progress_bar
 from nerfbake.render.sh import sh_num_coeffs
+from nerfbake.teacher.clearance import CameraClearance
+from nerfbake.teacher.protocol import Teacher
 from nerfbake.teacher.run import load_teacher
 from nerfbake.train.loop import DataParallel, step_generator
-from nerfbake.teacher.protocol import Teacher
 
 
 @dataclass
@@ -91,10 +92,10 @@ def _cell_centres(lo: torch.Tensor, hi: torch.Tensor, g: int, z0: int, z1: int) 
     return (lo + xyz * (hi - lo)).float()
 
 
-def density_grid(teacher: Teacher, lo: torch.Tensor, hi: torch.Tensor, g: int, chunk: int, desc: str,
-                 dp: DataParallel | None = None) -> torch.Tensor:
-    """sigma at the cell centres of a g^3 grid over [lo, hi] (0 where the teacher's occupancy grid is empty); under
-    torchrun each rank fills its share of the slabs."""
+def density_grid(teacher: Teacher, clearance: CameraClearance, lo: torch.Tensor, hi: torch.Tensor, g: int, chunk: int,
+                 desc: str, dp: DataParallel | None = None) -> torch.Tensor:
+    """sigma at the cell centres of a g^3 grid over [lo, hi] (0 where the teacher's occupancy grid is empty and in
+    its ``clearance`` around the training cameras); under torchrun each rank fills its share of the slabs."""
     dp = dp or DataParallel()
     sigma = torch.zeros(g, g, g)
     slab = max(1, (1 << 22) // (g * g))
@@ -104,7 +105,7 @@ def density_grid(teacher: Teacher, lo: torch.Tensor, hi: torch.Tensor, g: int, c
             z0 = starts[j]
             z1 = min(g, z0 + slab)
             pts = _cell_centres(lo, hi, g, z0, z1)
-            live = teacher.may_be_occupied(pts)
+            live = teacher.may_be_occupied(pts) & ~clearance.inside(pts)
             vals = torch.zeros(pts.shape[0])
             if live.any():
                 vals[live] = query_density(teacher, pts[live], chunk)
@@ -113,12 +114,13 @@ def density_grid(teacher: Teacher, lo: torch.Tensor, hi: torch.Tensor, g: int, c
     return dp.combine(sigma)
 
 
-def autoscale_box(teacher: Teacher, lo: torch.Tensor, hi: torch.Tensor, cameras, cfg: BuildConfig) -> tuple[torch.Tensor, torch.Tensor]:
+def autoscale_box(teacher: Teacher, clearance: CameraClearance, lo: torch.Tensor, hi: torch.Tensor, cameras,
+                  cfg: BuildConfig) -> tuple[torch.Tensor, torch.Tensor]:
     """Tight box (one cell of margin) around the coarse cells that some training ray sees with weight >=
     autoscale_weight. The authors threshold alpha alone; counting only what the views see keeps a teacher's
     floaters in unseen corners from inflating the box."""
     g = cfg.autoscale_grid
-    sigma = density_grid(teacher, lo, hi, g, cfg.chunk, "octree bbox")  # every rank ends with the whole grid
+    sigma = density_grid(teacher, clearance, lo, hi, g, cfg.chunk, "octree bbox")  # every rank ends with the whole grid
     coarse = BuildConfig(**{**asdict(cfg), "ray_stride": max(2, cfg.ray_stride), "weight_thresh": cfg.autoscale_weight})
     alive = weight_mask(sigma, lo, hi, cameras, coarse, "octree bbox rays") > 0
     if not alive.any():
@@ -191,25 +193,46 @@ def fill_leaves(tree: Octree, teacher: Teacher, cfg: BuildConfig, cells: np.ndar
     dp.combine(flat)  # the other leaves are zero on each rank
 
 
+def unbuildable_reason(meta: dict, cameras) -> str | None:
+    """Why no PlenOctree can be cut from the teacher run whose ``config.json`` is ``meta`` (trained on ``cameras``):
+    the build refuses with it and the pipeline skips the octree route with it; None when a tree can be built.
+
+    A forward-facing capture's content lies in front of the cameras out to infinity, with no box around it that
+    its cameras look into from outside. A box that lies wholly within the teacher's near bound of its cameras
+    (fern read as a 360 capture: its whole core cube) holds only space the teacher's rays never reached."""
+    box = meta["box"]
+    if box.get("contracted") and meta.get("dataset", {}).get("scene_kind") == "forward-facing":
+        return ("a PlenOctree covers one bounded box, and this forward-facing capture's content lies in front of its "
+                "cameras out to infinity; use SMERF for it")
+    clearance = CameraClearance.of_teacher(meta, cameras)
+    lo, hi = (torch.tensor(box[k], dtype=torch.float64) for k in ("box_min", "box_max"))
+    if clearance.inside(_cell_centres(lo, hi, 16, 0, 16)).all():
+        return (f"all of the teacher's box lies within its near bound ({clearance.radius:.3g}) of a training camera, "
+                "space its rays never reached (the scene's content lies beyond it); use SMERF for it, or retrain "
+                "with the --normalize that matches the capture")
+    return None
+
+
 def build_octree(teacher_run: str | Path, out: str | Path, cfg: BuildConfig) -> dict:
     """Build and save a tree; returns a summary (also written next to it as JSON)."""
     start = time.time()
     teacher, tcfg, meta, _ = load_teacher(Path(teacher_run))
+    cameras = load_dataset(meta["data"], downscale=tcfg.downscale, normalize=tcfg.normalize).cameras("train")
+    reason = unbuildable_reason(meta, cameras)
+    if reason:
+        raise ValueError(f"{teacher_run}: {reason}")
     region = "the teacher's box"
     if meta["box"].get("contracted"):
-        if meta.get("dataset", {}).get("scene_kind") == "forward-facing":
-            raise ValueError(f"{teacher_run}: the teacher is a forward-facing capture; a PlenOctree covers one bounded box "
-                             "and this scene's content lies in front of its cameras out to infinity: use SMERF for it")
         # An unbounded 360 scene: the tree covers the uncontracted core (the cube the cameras stand in, where the
         # teacher spends its resolution); what lies beyond is drawn from an environment map (see below).
         region = "the unbounded scene's uncontracted core (cameras inside it)"
     depth = cfg.depth
     lo = torch.tensor(meta["box"]["box_min"], dtype=torch.float64)
     hi = torch.tensor(meta["box"]["box_max"], dtype=torch.float64)
-    cameras = load_dataset(meta["data"], downscale=tcfg.downscale, normalize=tcfg.normalize).cameras("train")
+    clearance = CameraClearance.of_teacher(meta, cameras)
     if cfg.autoscale:
-        lo, hi = autoscale_box(teacher, lo, hi, cameras, cfg)
-    sigma = density_grid(teacher, lo, hi, cfg.grid, cfg.chunk, "octree density")
+        lo, hi = autoscale_box(teacher, clearance, lo, hi, cameras, cfg)
+    sigma = density_grid(teacher, clearance, lo, hi, cfg.grid, cfg.chunk, "octree density")
     keep = weight_mask(sigma, lo, hi, cameras, cfg)
     cells = torch.nonzero(keep).numpy()
     if cells.shape[0] == 0:

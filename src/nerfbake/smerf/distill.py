@@ -44,10 +44,14 @@ from nerfbake.render.quantize import RANGE_DENSITY
 from nerfbake.smerf.partition import Partition, PartitionError
 from nerfbake.smerf.run import CHECKPOINT, CONFIG, DistillConfig
 from nerfbake.smerf.student import Student
+from nerfbake.teacher.clearance import CameraClearance
 from nerfbake.teacher.protocol import Teacher
 from nerfbake.teacher.run import load_teacher
 from nerfbake.train.loop import (DataParallel, finish_run, git_revision, load_checkpoint, log_linear_lr, run_complete,
                                  run_steps, to_jsonable, write_json_atomic)
+
+
+CLEARANCE_SAMPLES = 2  # points per training ray in front of the teacher's near bound (clearance_loss)
 
 
 def charbonnier(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
@@ -55,11 +59,13 @@ def charbonnier(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
     return torch.sqrt(1e-6 + (a - b) ** 2).mean()
 
 
-def empty_space_loss(student: Student, teacher: Teacher, num_points: int, gen: torch.Generator, quantize: bool) -> torch.Tensor:
+def empty_space_loss(student: Student, teacher: Teacher, clearance: CameraClearance, num_points: int,
+                     gen: torch.Generator, quantize: bool) -> torch.Tensor:
     """Mean |alpha_student - alpha_teacher| at the viewer's step length, at random points of every submodel's
     contracted volume (half of them in the uncontracted core). The ray losses only ever see the teacher's
     intervals; without this the grids keep arbitrary density wherever the teacher never sampled, and the baked
-    scene, which the viewer marches densely, shows it as floaters (the role of the authors' sparsity loss)."""
+    scene, which the viewer marches densely, shows it as floaters (the role of the authors' sparsity loss). The
+    teacher is read with its ``clearance`` emptied (space no training ray of it reached)."""
     dev = student.sparse.device
     n = num_points
     z = torch.rand(n, 3, generator=gen) * 4 - 2
@@ -68,20 +74,40 @@ def empty_space_loss(student: Student, teacher: Teacher, num_points: int, gen: t
     z, sm = z.to(dev), sm.to(dev)
     world = student.world_from_contracted(z, sm)
     with torch.no_grad():
-        sigma_t = teacher.density_at(world)
+        sigma_t = clearance.density(teacher, world)
     step = student.realtime_step(uncontract_norm(z))
     alpha_t = 1 - torch.exp(-sigma_t * step / student.partition.scale)  # teacher sigma is per world unit
     alpha_s = 1 - torch.exp(-student.features(z, sm, quantize)["density"] * step)
     return (alpha_s - alpha_t).abs().mean()
 
 
+def clearance_loss(student: Student, clearance: CameraClearance, origins: torch.Tensor, dirs: torch.Tensor,
+                   params_idx: torch.Tensor, u: torch.Tensor, quantize: bool) -> torch.Tensor:
+    """Mean opacity the student gives the first stretch of each training ray, up to the teacher's near bound
+    (``clearance.radius``): the teacher's rays start there, so the ray losses never see this stretch, while the
+    viewer marches it from its own near plane. Its optical depth is estimated from the points at ``u`` (R, m)
+    uniform in [0, 1) along each ray's stretch. The sparse grid starts empty there (the warm start), but the triplanes, shared along each axis
+    with surfaces further on, fill it (the phone clip: mean alpha 0.003 per viewer step inside 0.45 of the cameras,
+    a fifth of the light over the stretch, seen as coloured blocks over the floor)."""
+    r, m = u.shape
+    t = u.to(origins.device) * clearance.radius
+    pts = (origins[:, None] + t[..., None] * dirs[:, None]).reshape(-1, 3)
+    sm = params_idx[:, None].expand(r, m).reshape(-1)
+    z, _ = student.contracted(pts, sm)
+    sigma = student.features(z, sm, quantize)["density"].view(r, m)
+    depth = sigma.mean(1) * clearance.radius * student.partition.scale  # density is per cube unit
+    return (1.0 - torch.exp(-depth)).mean()
+
+
 @torch.no_grad()
-def warm_start_density(student: Student, teacher: Teacher, floor: float = -4.0, chunk: int = 1 << 18) -> None:
+def warm_start_density(student: Student, teacher: Teacher, clearance: CameraClearance, floor: float = -4.0,
+                       chunk: int = 1 << 18) -> None:
     """Start every submodel's sparse density from the teacher's: at each voxel centre of each alive submodel, the
     pre-activation whose density (per cube unit) is the teacher's there, at least ``floor`` (exp(floor - 1) per cube
     unit: invisible at the viewer's step, yet not so deep that gradients cannot raise it). Explicit grids learn only
     where training rays pass; without this, a submodel's space that few of its rays cross keeps the uniform starting
-    density (K > 1 splits the rays between submodels, so much of each one's space is such)."""
+    density (K > 1 splits the rays between submodels, so much of each one's space is such). The teacher's
+    ``clearance`` around its cameras starts at the floor: it never rendered that space."""
     s, dev = student.cfg.sparse_resolution, student.sparse.device
     centres = (torch.arange(s, dtype=torch.float32) + 0.5) / s * 4.0 - 2.0
     grid = torch.stack(torch.meshgrid(centres, centres, centres, indexing="ij"), -1).reshape(-1, 3)
@@ -90,7 +116,7 @@ def warm_start_density(student: Student, teacher: Teacher, floor: float = -4.0, 
             for a in range(0, grid.shape[0], chunk):
                 z = grid[a:a + chunk].to(dev)
                 world = student.world_from_contracted(z, torch.full((z.shape[0],), sm, device=dev))
-                sigma = teacher.density_at(world).float() / student.partition.scale
+                sigma = clearance.density(teacher, world).float() / student.partition.scale
                 pre = torch.log(sigma.clamp_min(1e-30)) + 1.0
                 student.sparse[sm * s ** 3 + a: sm * s ** 3 + a + z.shape[0], 0] = pre.clamp(floor, RANGE_DENSITY[1])
                 adv(z.shape[0])
@@ -179,6 +205,7 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
     with progress_bar("loading images", len(train_idx), unit="img") as adv:
         store = PixelStore(ds, "train", progress=lambda k, n: adv())
     bg = teacher_background(ds)
+    clearance = CameraClearance.of_teacher(tmeta, ds.cameras("train"))
     if resume and (out / CONFIG).is_file():  # the partition the checkpoint was trained in
         partition = Partition.from_json(json.loads((out / CONFIG).read_text())["partition"])
     else:
@@ -189,7 +216,7 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
     torch.manual_seed(cfg.seed)
     student = Student(cfg.student, partition, cfg.seed).to(dp.device)
     if cfg.warm_start and not (resume and (out / CHECKPOINT).is_file()):
-        warm_start_density(student, teacher)
+        warm_start_density(student, teacher, clearance)
     opt = torch.optim.Adam([{"params": [student.sparse, student.planes], "lr": cfg.lr_grid},
                             {"params": list(student.mlp.parameters()), "lr": cfg.lr_mlp}],
                            betas=(0.9, 0.99), eps=1e-15, fused=True)
@@ -251,12 +278,15 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
                         + cfg.opacity_mult * opacity_l)
         loss = loss + cfg.mlp_tv_mult * student.mlp.tv_loss() / dp.world
         if cfg.empty_space_mult > 0:
-            empty_l = empty_space_loss(student, teacher, cfg.empty_space_points, gen, cfg.quantize)
-            loss = loss + cfg.empty_space_mult * empty_l / dp.world
+            empty_l = empty_space_loss(student, teacher, clearance, cfg.empty_space_points, gen, cfg.quantize)
+            u = torch.rand(n_rays, CLEARANCE_SAMPLES, generator=gen)[sl]  # drawn whole: every rank's stream agrees
+            clear_l = clearance_loss(student, clearance, o, d, pidx, u, cfg.quantize)
+            loss = loss + cfg.empty_space_mult * (empty_l / dp.world + share * clear_l)
         terms = {"rgb": float(rgb_l.detach()), "dssim": float(ssim_l.detach()), "geometry": float(geo_l.detach()),
                  "opacity": float(opacity_l.detach())}
         if cfg.empty_space_mult > 0:
             terms["empty_space"] = float(empty_l.detach())
+            terms["clearance"] = float(clear_l.detach())
         if neighbour is not None:
             nb = torch.as_tensor(neighbour[sl], device=dp.device)
             keep = (nb >= 0)
