@@ -86,6 +86,20 @@ def test_a_poor_tree_keeps_its_colours(tiny_tree, tiny_scene, tmp_path):
     assert ViewLoss(raw, ds, 2)(coarse) < loss(coarse)
 
 
+def test_a_threshold_that_drops_too_much_is_lowered_before_the_bands_are_chosen(tiny_tree, tiny_scene, tmp_path):
+    """Dropping the fainter half of this tree's leaves costs more than half the target by itself, which would leave
+    the bands nothing to spend (the phone clip's tree at sigma 2 kept 16 bits everywhere); the search lowers the
+    threshold first and still meets the target."""
+    tree = load_tree(tiny_tree)
+    sigma = tree.data[..., -1][(tree.child == 0) & (tree.data[..., -1] > 0)].numpy()
+    median = float(np.median(sigma))
+    out = compress_tree(tiny_tree, tmp_path / "c.npz", data=tiny_scene, target_db=0.5, views=2, sigma_thresh=median)
+    first = out["tried"][0]
+    assert first["sigma_thresh"] == median and first["loss_db"] > 0.25  # the case this guards
+    assert out["sigma_thresh"] < median and out["target_met"]
+    assert min(out["bits_per_band"]) < 16  # the bands got room
+
+
 def test_compression_benchmark_prints_every_row(tiny_tree, tiny_scene, tmp_path):
     import subprocess
     import sys

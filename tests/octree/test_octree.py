@@ -337,6 +337,9 @@ def test_build_optimize_compress_eval_on_a_tiny_scene(tiny_scene, tiny_teacher, 
     cfg = BuildConfig(grid=32, samples_per_leaf=8, autoscale_grid=16, weight_thresh=0.01)
     summary = build_octree(tiny_teacher, tmp_path / "tree.npz", cfg)
     assert summary["kept_voxels"] > 50 and summary["num_leaves"] >= summary["kept_voxels"]
+    with pytest.raises(ValueError, match="box-scale.*contracted"):  # a bounded teacher has nothing beyond its box
+        build_octree(tiny_teacher, tmp_path / "wide.npz", replace(cfg, box_scale=2.0))
+    assert not (tmp_path / "wide.npz").exists()
     tree = load_tree(tmp_path / "tree.npz")
     assert tree.depth_limit == 4 and tree.sh_degree == 2
     ds = load_dataset(tiny_scene)
@@ -399,6 +402,12 @@ def test_an_unbounded_360_teacher_builds_a_tree_over_its_core_and_a_forward_faci
                                                                       weight_thresh=0.01, env_map_height=6))
     assert "core" in summary["region"] and "environment map" in summary["region"] and summary["num_leaves"] > 0
     assert min(summary["box_min"]) >= -1 and max(summary["box_max"]) <= 1
+    # --box-scale: the tree reaches into the room beyond the core (fitted to what the views see there)
+    wide = build_octree(fox_run, tmp_path / "fox_wide.npz", BuildConfig(grid=32, samples_per_leaf=2, autoscale_grid=16,
+                                                                         weight_thresh=0.01, env_map_height=6,
+                                                                         box_scale=2.0))
+    assert wide["region"].startswith("2 x") and min(wide["box_min"]) >= -2 and max(wide["box_max"]) <= 2
+    assert min(wide["box_min"]) < -1 or max(wide["box_max"]) > 1
     # beyond the box, the environment map: each texel is the teacher's colour along its direction from the cameras'
     # mean position, from where that ray leaves the box on
     from nerfbake.data.formats import load_dataset

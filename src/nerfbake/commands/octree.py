@@ -20,7 +20,7 @@ class OctreeBuild(Command):
     overwrite: bool = option(False, OVERWRITE)
     preset: str = option("cpu-small", choices=PRESETS)
     overrides: dict = config_overrides("nerfbake.octree.build:BuildConfig", "grid", "weight_thresh", "samples_per_leaf",
-                                       "ray_stride", "autoscale", "env_map_height")
+                                       "ray_stride", "autoscale", "box_scale", "env_map_height")
     json: bool = option(False, JSON)
 
     def run(self) -> dict:

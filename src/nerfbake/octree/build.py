@@ -45,6 +45,9 @@ class BuildConfig:
     autoscale: bool = field(default=True, metadata={"flag": "--no-autoscale",
                                                     "help": "keep the teacher's box instead of fitting one"})
     autoscale_grid: int = 256
+    box_scale: float = field(default=1.0, metadata={"help": (
+        "unbounded scenes: cover the teacher's core cube times this (the room beyond the cameras, drawn with "
+        "parallax at coarser leaves) and draw only what lies beyond it from the environment map")})
     autoscale_weight: float = 0.05  # the box must hold what views clearly see; fainter floaters outside it are cut
     ray_stride: int = field(default=1, metadata={
         "help": "use every n-th pixel row/column of the training views for the weight mask"})
@@ -229,6 +232,13 @@ def build_octree(teacher_run: str | Path, out: str | Path, cfg: BuildConfig) -> 
     depth = cfg.depth
     lo = torch.tensor(meta["box"]["box_min"], dtype=torch.float64)
     hi = torch.tensor(meta["box"]["box_max"], dtype=torch.float64)
+    if cfg.box_scale != 1.0:
+        if not meta["box"].get("contracted") or cfg.box_scale <= 0:
+            raise ValueError(f"--box-scale {cfg.box_scale}: only an unbounded (contracted) teacher has a field beyond "
+                             "its box, and the scale must be positive; leave it at 1 for this teacher")
+        centre = (lo + hi) / 2
+        lo, hi = centre + (lo - centre) * cfg.box_scale, centre + (hi - centre) * cfg.box_scale
+        region = f"{cfg.box_scale:g} x " + region
     clearance = CameraClearance.of_teacher(meta, cameras)
     if cfg.autoscale:
         lo, hi = autoscale_box(teacher, clearance, lo, hi, cameras, cfg)

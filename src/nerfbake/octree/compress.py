@@ -107,6 +107,7 @@ MIN_EXTENT = 2.0 ** -9  # about float16's spacing at 1: finer splits would quant
 BAND_BITS = (16, 8, 6, 4)  # codebook bits for SH bands 0, 1, 2, 3 when there are no photos to measure the loss on
 BITS_LADDER = (16, 12, 10, 8, 7, 6, 5, 4, 3, 2)  # what --target-db tries for a band, one rung at a time
 SIGMA_LADDER = (2.0, 4.0)  # and then for the density below which leaves are dropped, times --sigma-thresh
+SIGMA_LOWER = (0.5, 0.25, 0.0)  # tried first, in turn, while dropping leaves alone costs over half of --target-db
 CODEBOOKS = ("kmeans", "median")
 KMEANS_ITERS = 4
 TARGET_DB = 0.5
@@ -234,6 +235,29 @@ class Quantizer:
         return sum(self.basis_bytes(j, per_basis[j]) for j in range(retain, self.nb))
 
 
+def settle_threshold(tree: Octree, nb: int, bits: int, sigma_thresh: float, min_extent: float, loss: ViewLoss,
+                     retain: int, target_db: float) -> tuple[Quantizer, float, list[dict]]:
+    """The quantiser the allocation search starts from: at ``sigma_thresh``, unless dropping the leaves at or under
+    it costs more than half of ``target_db`` with every basis at full bits, leaving the bands too little to spend
+    (the phone clip's tree, its floor made of faint leaves: 0.46 of 0.5 dB gone at sigma 2, so every band kept 16
+    bits and the file 10 MB); then the first of the lower thresholds (:data:`SIGMA_LOWER`) that costs at most half,
+    or the cheapest tried. Median-cut codebooks; returns the quantiser, its threshold and the measurements."""
+    tried, best = [], None
+    for m in (1.0,) + SIGMA_LOWER:
+        thresh = m * sigma_thresh
+        q = Quantizer(tree, nb, bits, thresh, min_extent, "median")
+        if not q.alive.any():
+            continue
+        value = loss(q.decoded(basis_bits(nb, bits, None), retain, thresh))
+        tried.append({"band_bits": [bits], "sigma_thresh": thresh, "codebook": "median", "loss_db": value,
+                      "bytes_est": q.estimated_bytes(basis_bits(nb, bits, None), retain)})
+        if best is None or value < best[2]:
+            best = (q, thresh, value)
+        if value <= target_db / 2:
+            break
+    return best[0], best[1], tried
+
+
 def choose_allocation(q: Quantizer, loss: ViewLoss, retain: int, sigma_thresh: float, target_db: float) -> dict:
     """The smallest allocation of bits per SH band within ``target_db``. The search runs on median-cut codebooks
     (cheap: one deep cut per basis serves every rung). Each band is measured alone, one rung down the ladder at a
@@ -339,9 +363,12 @@ def compress_tree(tree_path: str | Path, out: str | Path, bits: int = 16, retain
     if band_bits is None and data is not None:
         loss = ViewLoss(tree, load_dataset(data, downscale=downscale, normalize=normalize), views,
                         quality_floor_db=QUALITY_FLOOR_DB)
+        q, sigma_thresh, settling = settle_threshold(tree, nb, bits, sigma_thresh, min_extent, loss, retain, target_db)
+        q.codebook = codebook
         choice = choose_allocation(q, loss, retain, sigma_thresh, target_db)
         band_bits, sigma_thresh = choice["bits_per_band"], choice["sigma_thresh"]
         choice["allocation"] = "measured"
+        choice["tried"] = settling + choice["tried"]
     else:
         choice = {"allocation": "fixed" if band_bits is not None else "fixed (no --data to measure on)"}
         band_bits = BAND_BITS if band_bits is None else band_bits
