@@ -114,6 +114,12 @@ def test_a_setting_added_later_leaves_earlier_fingerprints_as_they_were():
     before = [replace(s, keys=tuple(k for k in s.keys if k != "normalize")) for s in STAGES]  # the older stage table
     assert fingerprints(STAGES, settings) == fingerprints(before, settings)
     assert fingerprints(STAGES, {**settings, "normalize": "none"})["teacher"] != fingerprints(before, settings)["teacher"]
+    # the same for --octree-box-scale, which only the octree build (and what follows it) reads
+    before = [replace(s, keys=tuple(k for k in s.keys if k != "octree_box_scale")) for s in STAGES]
+    assert fingerprints(STAGES, settings) == fingerprints(before, settings)
+    wide = fingerprints(STAGES, {**settings, "octree_box_scale": 2.5})
+    old = fingerprints(before, settings)
+    assert wide["octree_build"] != old["octree_build"] and wide["teacher"] == old["teacher"]
 
 
 def test_a_method_that_cannot_run_on_a_scene_is_skipped_with_a_reason(tiny_scene, tmp_path):

@@ -64,6 +64,7 @@ class PipelineConfig:
     # Overrides of the presets (None keeps the preset's value); the demo uses them to fit in minutes.
     teacher_steps: int | None = None
     octree_grid: int | None = None
+    octree_box_scale: float | None = None  # unbounded scenes only (octree build --box-scale); bounded ones ignore it
     octree_epochs: int | None = None
     octree_lr: float | None = None
     distill_steps: int | None = None
@@ -169,6 +170,8 @@ def run_octree_build(cfg: PipelineConfig, run: Path) -> dict:
     b = build_preset(cfg.preset)
     if cfg.octree_grid:
         b = replace(b, grid=cfg.octree_grid, autoscale_grid=max(8, min(b.autoscale_grid, cfg.octree_grid // 2)))
+    if cfg.octree_box_scale and json.loads((run / "teacher" / RUN_CONFIG).read_text())["box"].get("contracted"):
+        b = replace(b, box_scale=cfg.octree_box_scale)
     return build_octree(run / "teacher", octree_paths(run)["raw"], b)
 
 
@@ -252,7 +255,8 @@ STAGES = [
     Stage("teacher", "teacher", run_teacher, parallel=True,
           keys=("data", "preset", "field", "downscale", "normalize", "teacher_steps", "teacher"), output="teacher"),
     Stage("teacher_eval", "teacher", eval_teacher, keys=EVAL_KEYS, after=("teacher",)),
-    Stage("octree_build", "octree", run_octree_build, parallel=True, keys=("preset", "octree_grid"), after=("teacher",)),
+    Stage("octree_build", "octree", run_octree_build, parallel=True, keys=("preset", "octree_grid", "octree_box_scale"),
+          after=("teacher",)),
     Stage("octree_optimize", "octree", run_octree_optimize,
           keys=("data", "preset", "downscale", "octree_epochs", "octree_lr"), after=("octree_build",)),
     Stage("octree_compress", "octree", run_octree_compress, after=("octree_optimize",)),
@@ -292,7 +296,7 @@ def data_fingerprint(data: str | Path) -> list:
 
 # Settings added after runs were recorded, with the value that means "not given": at that value they are left out
 # of the fingerprint, so a finished stage of an earlier version is not redone for a setting it could not have had.
-ADDED_SETTINGS = {"normalize": None}
+ADDED_SETTINGS = {"normalize": None, "octree_box_scale": None}
 
 
 def stage_settings(stage: Stage, settings: dict) -> dict:

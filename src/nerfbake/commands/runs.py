@@ -55,6 +55,8 @@ class Pipeline(Command):
     teacher_steps: int | None = option(None)
     distill_steps: int | None = option(None)
     octree_grid: int | None = option(None)
+    octree_box_scale: float | None = option(None, "unbounded scenes: the octree covers the teacher's core cube times "
+                                            "this (octree build --box-scale); bounded scenes ignore it")
     octree_epochs: int | None = option(None)
     octree_lr: float | None = option(None)
     bake_stride: int = option(2)
@@ -71,8 +73,8 @@ class Pipeline(Command):
         cfg = PipelineConfig(
             data=self.data, out=self.out, preset=self.preset, methods=methods(self.methods), k=self.k,
             eval_views=self.eval_views or None, teacher_steps=self.teacher_steps, distill_steps=self.distill_steps,
-            octree_grid=self.octree_grid, octree_epochs=self.octree_epochs, octree_lr=self.octree_lr,
-            bake_stride=self.bake_stride, downscale=self.downscale, normalize=self.normalize,
+            octree_grid=self.octree_grid, octree_box_scale=self.octree_box_scale, octree_epochs=self.octree_epochs,
+            octree_lr=self.octree_lr, bake_stride=self.bake_stride, downscale=self.downscale, normalize=self.normalize,
             teacher=teacher_config(self.teacher_config) if self.teacher_config else None,
             distill=distill_config(self.distill_config) if self.distill_config else None)
         return run_pipeline(cfg, stop_after=self.stop_after, log=log_line)
