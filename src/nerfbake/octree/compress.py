@@ -243,18 +243,19 @@ def settle_threshold(tree: Octree, nb: int, bits: int, sigma_thresh: float, min_
     bits and the file 10 MB); then the first of the lower thresholds (:data:`SIGMA_LOWER`) that costs at most half,
     or the cheapest tried. Median-cut codebooks; returns the quantiser, its threshold and the measurements."""
     tried, best = [], None
-    for m in (1.0,) + SIGMA_LOWER:
-        thresh = m * sigma_thresh
-        q = Quantizer(tree, nb, bits, thresh, min_extent, "median")
-        if not q.alive.any():
-            continue
-        value = loss(q.decoded(basis_bits(nb, bits, None), retain, thresh))
-        tried.append({"band_bits": [bits], "sigma_thresh": thresh, "codebook": "median", "loss_db": value,
-                      "bytes_est": q.estimated_bytes(basis_bits(nb, bits, None), retain)})
-        if best is None or value < best[2]:
-            best = (q, thresh, value)
-        if value <= target_db / 2:
-            break
+    with progress_bar("octree compress: settling the density threshold", 1 + len(SIGMA_LOWER), unit="try") as advance:
+        for m in (1.0,) + SIGMA_LOWER:
+            thresh = m * sigma_thresh
+            q = Quantizer(tree, nb, bits, thresh, min_extent, "median")
+            if q.alive.any():  # fitting every basis's deep cut: minutes for millions of leaves
+                value = loss(q.decoded(basis_bits(nb, bits, None), retain, thresh))
+                tried.append({"band_bits": [bits], "sigma_thresh": thresh, "codebook": "median", "loss_db": value,
+                              "bytes_est": q.estimated_bytes(basis_bits(nb, bits, None), retain)})
+                if best is None or value < best[2]:
+                    best = (q, thresh, value)
+            advance()
+            if best is not None and best[2] <= target_db / 2:
+                break
     return best[0], best[1], tried
 
 
