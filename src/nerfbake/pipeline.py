@@ -37,6 +37,7 @@ from nerfbake.smerf.bake import bake_student
 from nerfbake.smerf.distill import distill
 from nerfbake.smerf.evaluate import evaluate_assets, evaluate_student
 from nerfbake.smerf.run import distill_preset
+from nerfbake.teacher.clearance import CameraClearance
 from nerfbake.teacher.evaluate import evaluate_teacher
 from nerfbake.teacher.presets import preset
 from nerfbake.teacher.run import CHECKPOINT, load_teacher
@@ -118,7 +119,7 @@ def skip_reason(stage: Stage, run: Path) -> str | None:
     meta = json.loads((run / "teacher" / RUN_CONFIG).read_text())
     train = meta["train"]
     cameras = load_dataset(meta["data"], downscale=train["downscale"], normalize=train["normalize"]).cameras("train")
-    return unbuildable_reason(meta, cameras)
+    return unbuildable_reason(meta, CameraClearance.of_teacher(meta, cameras))
 
 
 # --- stages ---------------------------------------------------------------------------------------------------------

@@ -196,9 +196,10 @@ def fill_leaves(tree: Octree, teacher: Teacher, cfg: BuildConfig, cells: np.ndar
     dp.combine(flat)  # the other leaves are zero on each rank
 
 
-def unbuildable_reason(meta: dict, cameras) -> str | None:
-    """Why no PlenOctree can be cut from the teacher run whose ``config.json`` is ``meta`` (trained on ``cameras``):
-    the build refuses with it and the pipeline skips the octree route with it; None when a tree can be built.
+def unbuildable_reason(meta: dict, clearance: CameraClearance) -> str | None:
+    """Why no PlenOctree can be cut from the teacher run whose ``config.json`` is ``meta`` (``clearance``: its near
+    bound around its training cameras): the build refuses with it and the pipeline skips the octree route with it;
+    None when a tree can be built.
 
     A forward-facing capture's content lies in front of the cameras out to infinity, with no box around it that
     its cameras look into from outside. A box that lies wholly within the teacher's near bound of its cameras
@@ -207,7 +208,6 @@ def unbuildable_reason(meta: dict, cameras) -> str | None:
     if box.get("contracted") and meta.get("dataset", {}).get("scene_kind") == "forward-facing":
         return ("a PlenOctree covers one bounded box, and this forward-facing capture's content lies in front of its "
                 "cameras out to infinity; use SMERF for it")
-    clearance = CameraClearance.of_teacher(meta, cameras)
     lo, hi = (torch.tensor(box[k], dtype=torch.float64) for k in ("box_min", "box_max"))
     if clearance.inside(_cell_centres(lo, hi, 16, 0, 16)).all():
         return (f"all of the teacher's box lies within its near bound ({clearance.radius:.3g}) of a training camera, "
@@ -221,7 +221,8 @@ def build_octree(teacher_run: str | Path, out: str | Path, cfg: BuildConfig) -> 
     start = time.time()
     teacher, tcfg, meta, _ = load_teacher(Path(teacher_run))
     cameras = load_dataset(meta["data"], downscale=tcfg.downscale, normalize=tcfg.normalize).cameras("train")
-    reason = unbuildable_reason(meta, cameras)
+    clearance = CameraClearance.of_teacher(meta, cameras)
+    reason = unbuildable_reason(meta, clearance)
     if reason:
         raise ValueError(f"{teacher_run}: {reason}")
     region = "the teacher's box"
@@ -239,7 +240,6 @@ def build_octree(teacher_run: str | Path, out: str | Path, cfg: BuildConfig) -> 
         centre = (lo + hi) / 2
         lo, hi = centre + (lo - centre) * cfg.box_scale, centre + (hi - centre) * cfg.box_scale
         region = f"{cfg.box_scale:g} x " + region
-    clearance = CameraClearance.of_teacher(meta, cameras)
     if cfg.autoscale:
         lo, hi = autoscale_box(teacher, clearance, lo, hi, cameras, cfg)
     sigma = density_grid(teacher, clearance, lo, hi, cfg.grid, cfg.chunk, "octree density")
