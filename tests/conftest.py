@@ -99,15 +99,16 @@ def rooms_teacher(tmp_path_factory) -> Path:
 
 
 @pytest.fixture(scope="session")
-def rooms_k2(rooms_teacher, tmp_path_factory) -> tuple[Path, Path]:
-    """(student, baked assets) of a K = 2 distillation of ``rooms_teacher``: several alive submodels."""
+def rooms_k3(rooms_teacher, tmp_path_factory) -> tuple[Path, Path]:
+    """(student, baked assets) of a K = 3 distillation of ``rooms_teacher``: four alive submodels (at K = 2 the
+    partition gives each room one, too few to test streaming and eviction)."""
     from dataclasses import replace
 
     from nerfbake.smerf.bake import bake_student
     from nerfbake.smerf.distill import distill
     from tests.helpers import tiny_distill_config
 
-    root = tmp_path_factory.mktemp("rooms_k2")
-    student = distill(rooms_teacher, root / "student", replace(tiny_distill_config(steps=20), k=2))
+    root = tmp_path_factory.mktemp("rooms_k3")
+    student = distill(rooms_teacher, root / "student", replace(tiny_distill_config(steps=20), k=3))
     bake_student(student, root / "assets")
     return student, root / "assets"

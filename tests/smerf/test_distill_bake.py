@@ -248,10 +248,10 @@ def test_bad_input_gives_clear_errors_and_no_half_written_output(tiny_student, t
     assert any("plane_rgb_1" in p for p in asset_problems(copy))
 
 
-# --- K = 2 on the two-room scene ----------------------------------------------------------------------------------
+# --- K = 3 on the two-room scene ----------------------------------------------------------------------------------
 
-def test_two_rooms_with_k2_bake_one_valid_folder_per_alive_submodel(rooms_k2):
-    student_dir, assets = rooms_k2
+def test_two_rooms_with_k3_bake_one_valid_folder_per_alive_submodel(rooms_k3):
+    student_dir, assets = rooms_k3
     student = load_student(student_dir)[0]
     part = student.partition
     assert part.num_alive >= 2 and student.sparse.shape[0] == part.num_alive * 32 ** 3
@@ -261,18 +261,18 @@ def test_two_rooms_with_k2_bake_one_valid_folder_per_alive_submodel(rooms_k2):
     assert folders == [f"sm_{i:03d}" for i in part.params_to_sm]
     assert asset_problems(assets) == []
     scene = SceneAssets.open(assets)
-    assert scene.params["num_local_submodels"] == part.num_alive and scene.params["num_submodels"] == 8
+    assert scene.params["num_local_submodels"] == part.num_alive and scene.params["num_submodels"] == 27
     assert scene.mlp["ResampleDense_0/kernel"].shape[0] == part.num_alive
 
 
-def test_a_camera_near_a_partition_boundary_looks_alike_from_both_submodels(rooms_k2, rooms_teacher):
+def test_a_camera_near_a_partition_boundary_looks_alike_from_both_submodels(rooms_k3, rooms_teacher):
     """SMERF's consistency claim: switching submodels at a boundary changes the picture less than the student
     differs from its teacher (benchmarks/smerf_partition.py measures it on a larger rooms scene)."""
     from nerfbake.data.formats import load_dataset
     from nerfbake.smerf.seams import boundary_cameras, compare_across_boundary
     from nerfbake.teacher.run import load_teacher
 
-    student_dir, assets = rooms_k2
+    student_dir, assets = rooms_k3
     student, _, meta = load_student(student_dir)
     ds = load_dataset(meta["data"])
     origins = np.stack([ds.frames[i].camera.origin for i in ds.split("train")])
@@ -292,10 +292,10 @@ def test_a_camera_near_a_partition_boundary_looks_alike_from_both_submodels(room
         render_baked(scene, viewer_camera(ds.frames[0].camera, student.partition), params_idx=n)
 
 
-def test_baking_over_two_processes_writes_the_same_files(rooms_k2, tmp_path):
+def test_baking_over_two_processes_writes_the_same_files(rooms_k3, tmp_path):
     """torchrun deals the submodels out over the ranks; the folder equals the one-process bake byte for byte
     (gzip members carry no time stamp, so bakes are reproducible)."""
-    student, assets = rooms_k2
+    student, assets = rooms_k3
     run_nerfbake(["bake", "--student", str(student), "--out", str(tmp_path / "two")], processes=2)
     assert json.loads((tmp_path / "two" / "bake.json").read_text())["ranks"] == 2
     ours = sorted(p.relative_to(assets) for p in assets.rglob("*") if p.is_file() and p.name != "bake.json")

@@ -28,11 +28,12 @@ def test_baking_cameras_are_those_within_one_and_a_half_cells_of_the_centre():
 
 def test_partition_assigns_cameras_by_cell_and_inf_norm():
     rng = np.random.default_rng(0)
-    # cameras in two rooms, diagonal from each other: only the cells they occupy come alive
+    # cameras in two rooms, diagonal from each other: only the cells they occupy come alive, one per room (their
+    # heights span less than a cell, so the cube is placed to hold them in one layer: see the next test)
     cams = np.concatenate([rng.uniform([-4, -1, -1], [-2, 1, 1], (30, 3)), rng.uniform([2, 3, -1], [4, 5, 1], (30, 3))])
     part = Partition.from_cameras(cams, k=2)
     assert np.abs(part.normalize(cams)).max() <= 0.95 + 1e-9
-    assert part.num_alive == 4 and part.submodel_scale == pytest.approx(1.6)
+    assert part.num_alive == 2 and part.submodel_scale == pytest.approx(1.6)
     home = part.assign(cams)
     assert len(set(home[:30]) & set(home[30:])) == 0  # the rooms get different submodels
     for i, p in zip(part.assign(cams), part.normalize(cams)):  # home cell = the cell holding the camera
@@ -40,7 +41,7 @@ def test_partition_assigns_cameras_by_cell_and_inf_norm():
     assert Partition.from_cameras(cams, k=1).submodel_scale == pytest.approx(2.5)
     # a point in a dead cell goes to the inf-norm nearest alive centre
     dead = [s for s, p in enumerate(part.sm_to_params) if p < 0]
-    assert len(dead) == 4
+    assert len(dead) == 6
     for sm in dead:
         c = part.cell_centre(sm)
         world = c / part.scale + part.centre
@@ -54,6 +55,30 @@ def test_partition_assigns_cameras_by_cell_and_inf_norm():
     assert Partition.from_json(part.to_json()).sm_to_params == part.sm_to_params
     for p in range(part.num_alive):
         assert p not in part.neighbours(p)
+
+
+@pytest.mark.parametrize("k", [2, 3, 4])
+def test_cell_boundaries_run_through_the_cameras_only_along_axes_they_span(k):
+    """A walk at eye height through a row of rooms: along x the cameras fill the cube (centred, as before); along y
+    and z they span less than K cells, so the cube is placed to hold them in the fewest whole layers, centred in
+    them. Centred on their box instead, the two-room scene's 80 cameras came alive in 8 cells at K = 2 (3 to 18
+    cameras each) rather than 2 of 40."""
+    rng = np.random.default_rng(4)
+    cams = np.stack([rng.uniform(-6, 6, 200), rng.uniform(-0.9, 0.9, 200), rng.uniform(1.4, 1.8, 200)], 1)
+    part = Partition.from_cameras(cams, k)
+    cube = part.normalize(cams)
+    assert np.abs(cube).max() <= 0.95 + 1e-9  # every camera inside the cube, the longest axis as before
+    assert cube[:, 0].min() == pytest.approx(-0.95) and cube[:, 0].max() == pytest.approx(0.95)
+    width = 2 / k
+    for axis in (1, 2):
+        layers = np.floor((cube[:, axis] + 1) / width)
+        span = np.ptp(cube[:, axis])
+        assert len(np.unique(layers)) == int(span // width) + 1  # the fewest layers that hold them
+        lo, hi = layers.min() * width - 1, (layers.max() + 1) * width - 1
+        assert (cube[:, axis].min() - lo) == pytest.approx(hi - cube[:, axis].max())  # centred in those layers
+    assert part.num_alive == k * (int(np.ptp(cube[:, 1]) // width) + 1)
+    # K = 1 keeps the object-centred cube
+    assert np.allclose(Partition.from_cameras(cams, 1).centre, 0)
 
 
 def test_partition_cube_grows_until_a_share_of_the_surfaces_lies_in_the_core():

@@ -95,12 +95,12 @@ def test_octree_view_matches_the_python_renderer(which, query, tiny_tree, tiny_s
 
 # --- streaming ----------------------------------------------------------------------------------------------------------
 
-def test_streaming_across_submodels_keeps_two_resident_and_evicts_lru(rooms_k2):
+def test_streaming_across_submodels_keeps_two_resident_and_evicts_lru(rooms_k3):
     from nerfbake.smerf.assets import SceneAssets
     from nerfbake.smerf.baked_render import submodel_center
     from nerfbake.viewer.browser import ViewerPage
 
-    _, assets = rooms_k2
+    _, assets = rooms_k3
     scene = SceneAssets.open(assets)
     n = scene.params["num_local_submodels"]
     assert n >= 3
@@ -123,14 +123,14 @@ def test_streaming_across_submodels_keeps_two_resident_and_evicts_lru(rooms_k2):
 
 
 
-def test_walkthrough_streams_across_submodels_without_a_blank_frame(rooms_k2, tmp_path, capsys):
-    """`view --benchmark --walkthrough PATH` flies through three submodels of a K = 2 scene: every frame is drawn
+def test_walkthrough_streams_across_submodels_without_a_blank_frame(rooms_k3, tmp_path, capsys):
+    """`view --benchmark --walkthrough PATH` flies through three submodels of a K = 3 scene: every frame is drawn
     (the resident submodel keeps drawing while the next one streams in), at most 2 submodels are on the GPU, and the
     frame-time figures are there."""
     from nerfbake.smerf.assets import SceneAssets
     from nerfbake.smerf.baked_render import submodel_center
 
-    _, assets = rooms_k2
+    _, assets = rooms_k3
     scene = SceneAssets.open(assets)
     centers = [submodel_center(scene.params, i).tolist() for i in range(3)]
     path = tmp_path / "path.json"
