@@ -37,6 +37,8 @@ import numpy as np
 from nerfbake.data.formats import load_dataset
 from nerfbake.data.synth import SynthConfig, render_dataset
 from nerfbake.smerf.assets import SceneAssets
+from nerfbake.smerf.bake import test_frames_json, viewer_camera
+from nerfbake.smerf.partition import Partition
 from nerfbake.smerf.run import distill_preset, load_student
 from nerfbake.smerf.evaluate import asset_summary, evaluate_assets, evaluate_student
 from nerfbake.smerf.seams import boundary_cameras, compare_across_boundary
@@ -183,7 +185,11 @@ def main() -> None:
             from nerfbake.viewer.browser import run_walkthrough
             from nerfbake.viewer.server import find_scene
 
-            walk = run_walkthrough(find_scene(assets))
+            # every test camera in the dataset's order (a bake writes each submodel's own test views into its
+            # folder, so the viewer's default path would stay inside the first submodel)
+            part = Partition.from_json(json.loads((assets / "bake.json").read_text())["partition"])
+            walk_path = test_frames_json([viewer_camera(ds.frames[i].camera, part) for i in ds.split("test")])
+            walk = run_walkthrough(find_scene(assets), walk_path["test_frames"])
             result["per_k"][k]["walkthrough"] = {key: walk[key] for key in (
                 "frames", "p50_ms", "p95_ms", "max_ms", "frames_while_loading", "blank_frames", "max_resident",
                 "max_host_cache")}
