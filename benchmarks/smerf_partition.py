@@ -40,7 +40,7 @@ from nerfbake.smerf.assets import SceneAssets
 from nerfbake.smerf.bake import test_frames_json, viewer_camera
 from nerfbake.smerf.partition import Partition
 from nerfbake.smerf.run import distill_preset, load_student
-from nerfbake.smerf.evaluate import asset_summary, evaluate_assets, evaluate_student
+from nerfbake.smerf.evaluate import asset_summary, bake_record, evaluate_assets, evaluate_student
 from nerfbake.smerf.seams import boundary_cameras, compare_across_boundary
 from nerfbake.smerf.student import StudentConfig
 from nerfbake.teacher.evaluate import evaluate_teacher
@@ -187,7 +187,7 @@ def main() -> None:
 
             # every test camera in the dataset's order (a bake writes each submodel's own test views into its
             # folder, so the viewer's default path would stay inside the first submodel)
-            part = Partition.from_json(json.loads((assets / "bake.json").read_text())["partition"])
+            part = Partition.from_json(bake_record(assets)["partition"])
             walk_path = test_frames_json([viewer_camera(ds.frames[i].camera, part) for i in ds.split("test")])
             walk = run_walkthrough(find_scene(assets), walk_path["test_frames"])
             result["per_k"][k]["walkthrough"] = {key: walk[key] for key in (

@@ -19,18 +19,19 @@ class PartitionError(NerfbakeError):
     """A partition that cannot be made or read (no cameras, a bad record); names the cause and the fix."""
 
 
-def layer_offsets(extent: np.ndarray, k: int, scale: float) -> np.ndarray:
-    """Where, in cube units, the middle of the cameras' box goes along each axis (3,): on an axis where the cameras
-    span fewer than K cells (a walk at eye height, a row of rooms), the middle of the fewest whole cell layers that
-    hold them, so no cell boundary runs through the cameras for nothing; 0 (the cube's middle) on the others.
+def layer_offsets(span: np.ndarray, k: int) -> np.ndarray:
+    """Where, in cube units, the middle of the cameras' box goes along each axis (3,), given its ``span`` in cube
+    units (3,): on an axis where the cameras span fewer than K cells (a walk at eye height, a row of rooms), the
+    middle of the fewest whole cell layers that hold them, so no cell boundary runs through the cameras for
+    nothing; 0 (the cube's middle) on the others.
     Centred on the cube, the two rooms' cameras at K = 2 straddled the mid-height and mid-depth boundaries too and
     came alive in 8 cells of 3 to 18 cameras each (of 80) instead of 2 of 40: each submodel learnt from an eighth
     of the rays where a half would do, and the rooms' floors and ceilings lay in the contracted shell of the cells
     above and below."""
     width = 2.0 / k
     out = np.zeros(3)
-    for axis, span in enumerate(np.asarray(extent, np.float64) * scale):
-        layers = int(span // width) + 1  # the fewest whole layers that hold the span with room to spare
+    for axis, extent in enumerate(np.asarray(span, np.float64)):
+        layers = int(extent // width) + 1  # the fewest whole layers that hold the span with room to spare
         if layers < k:
             first = (k - layers) // 2
             out[axis] = -1.0 + (first + layers / 2) * width
@@ -85,13 +86,13 @@ class Partition:
         lo, hi = origins.min(0), origins.max(0)
         centre = (lo + hi) / 2 if k > 1 else np.zeros(3)
         half = float(np.abs(origins - centre).max())
-        if k > 1 and half > 0:
-            centre = centre - layer_offsets(hi - lo, k, (1.0 - margin) / half) * half / (1.0 - margin)
         if k == 1 and core_quantile > 0 and surface_distances is not None and len(surface_distances):
             reach = float(np.quantile(surface_distances, core_quantile))
             if reach > half:  # the scene lies beyond the cameras' span: size the cube so ``reach`` meets the core's face
                 half = factor * (1.0 - margin) * reach
         scale = (1.0 - margin) / half if half > 0 else 1.0
+        if k > 1 and half > 0:
+            centre = centre - layer_offsets((hi - lo) * scale, k) / scale
         part = cls(k, centre, scale, [-1] * k ** 3, factor)
         alive = sorted(set(part.cell_index(part.normalize(origins)).tolist()))
         part.sm_to_params = [alive.index(i) if i in alive else -1 for i in range(k ** 3)]
