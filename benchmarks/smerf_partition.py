@@ -12,8 +12,8 @@ Every K uses the same per-submodel resolution (``--sparse``, ``--triplane``), so
 not bigger ones.
 
     python benchmarks/smerf_partition.py [--scene rooms|house] [--size 128] [--views 80] [--spp 64]
-                                         [--teacher-steps 2000] [--steps 2000] [--k 1,2,3] [--boundary-views 3]
-                                         [--walkthrough] [--work DIR]
+                                         [--teacher-steps 2000] [--steps 2000] [--steps-per-submodel] [--k 1,2,3]
+                                         [--boundary-views 3] [--walkthrough] [--work DIR]
 
 ``--walkthrough`` also flies the viewer along the test cameras (room after room) over each K's assets in headless
 chromium: per-frame p50/p95/max, frames drawn while a submodel loaded, blank frames, the most submodels resident.
@@ -37,10 +37,8 @@ import numpy as np
 from nerfbake.data.formats import load_dataset
 from nerfbake.data.synth import SynthConfig, render_dataset
 from nerfbake.smerf.assets import SceneAssets
-from nerfbake.smerf.bake import test_frames_json, viewer_camera
-from nerfbake.smerf.partition import Partition
 from nerfbake.smerf.run import distill_preset, load_student
-from nerfbake.smerf.evaluate import asset_summary, bake_record, evaluate_assets, evaluate_student
+from nerfbake.smerf.evaluate import asset_summary, evaluate_assets, evaluate_student
 from nerfbake.smerf.seams import boundary_cameras, compare_across_boundary
 from nerfbake.smerf.student import StudentConfig
 from nerfbake.teacher.evaluate import evaluate_teacher
@@ -111,6 +109,8 @@ def main() -> None:
     ap.add_argument("--spp", type=int, default=64)
     ap.add_argument("--teacher-steps", type=int, default=2000)
     ap.add_argument("--steps", type=int, default=2000, help="distillation steps for every K")
+    ap.add_argument("--steps-per-submodel", action="store_true", help="--steps for every alive submodel (the "
+                    "distillation's --steps-per-submodel) rather than shared by them")
     ap.add_argument("--sparse", type=int, default=128, help="sparse grid S per submodel, every K")
     ap.add_argument("--triplane", type=int, default=512, help="triplane T per submodel, every K")
     ap.add_argument("--k", "--ks", dest="ks", default="1,2", help="the K values, comma-separated")
@@ -154,12 +154,15 @@ def main() -> None:
                                                                      triplane_resolution=args.triplane))
         if args.warm_start:
             cfg = replace(cfg, warm_start=args.warm_start == "on")
+        if args.steps_per_submodel:
+            cfg = replace(cfg, steps_per_submodel=True)
         if args.consistency is not None:
             cfg = replace(cfg, consistency_mult=args.consistency)
         rss_file = work / f"peak_rss_{assets.name}.json"
-        warm = {"warm_start": True} if cfg.warm_start else {}  # students from before the option had none
+        # students from before these options have neither key
+        newer = {key: True for key in ("warm_start", "steps_per_submodel") if getattr(cfg, key)}
         need_distill = not finished_with(student_dir, "distill", steps=args.steps, student=asdict(cfg.student),
-                                         consistency_mult=cfg.consistency_mult, **warm)
+                                         consistency_mult=cfg.consistency_mult, **newer)
         baked_with = json.loads((assets / "bake.json").read_text()).get("camera_radius", 0.0) \
             if (assets / "bake.json").is_file() else None  # bakes before the option used a submodel's own cameras
         if need_distill or baked_with != args.camera_radius or not rss_file.is_file():
@@ -173,6 +176,7 @@ def main() -> None:
         sizes = asset_summary(assets)
         result["per_k"][k] = {
             "num_submodels": b_eval["num_submodels"], "distill_seconds": run_seconds(student_dir),
+            "distill_steps": json.loads((student_dir / "config.json").read_text()).get("total_steps", args.steps),
             "bake_camera_radius": args.camera_radius,
             "bake_seconds": round(json.loads((assets / "bake.json").read_text())["seconds"], 1),
             **{f"peak_rss_{key}": value for key, value in json.loads(rss_file.read_text()).items()},
@@ -182,14 +186,11 @@ def main() -> None:
             "student": {m: round(s_eval[m], 4) for m in QUALITY}, "baked": {m: round(b_eval[m], 4) for m in QUALITY},
             "format_problems": b_eval["format_problems"]}
         if args.walkthrough:
-            from nerfbake.viewer.browser import run_walkthrough
+            from nerfbake.viewer.browser import read_walkthrough, run_walkthrough
             from nerfbake.viewer.server import find_scene
 
-            # every test camera in the dataset's order (a bake writes each submodel's own test views into its
-            # folder, so the viewer's default path would stay inside the first submodel)
-            part = Partition.from_json(bake_record(assets)["partition"])
-            walk_path = test_frames_json([viewer_camera(ds.frames[i].camera, part) for i in ds.split("test")])
-            walk = run_walkthrough(find_scene(assets), walk_path["test_frames"])
+            scene_assets = find_scene(assets)  # the walk `nerfbake view --walkthrough test` flies: every test camera
+            walk = run_walkthrough(scene_assets, read_walkthrough("test", scene_assets))
             result["per_k"][k]["walkthrough"] = {key: walk[key] for key in (
                 "frames", "p50_ms", "p95_ms", "max_ms", "frames_while_loading", "blank_frames", "max_resident",
                 "max_host_cache")}

@@ -101,7 +101,7 @@ def rooms_teacher(tmp_path_factory) -> Path:
 @pytest.fixture(scope="session")
 def rooms_k3(rooms_teacher, tmp_path_factory) -> tuple[Path, Path]:
     """(student, baked assets) of a K = 3 distillation of ``rooms_teacher``: four alive submodels (at K = 2 the
-    partition gives each room one, too few to test streaming and eviction)."""
+    partition gives each room one, too few to test streaming and eviction), 5 steps for each of them."""
     from dataclasses import replace
 
     from nerfbake.smerf.bake import bake_student
@@ -109,6 +109,7 @@ def rooms_k3(rooms_teacher, tmp_path_factory) -> tuple[Path, Path]:
     from tests.helpers import tiny_distill_config
 
     root = tmp_path_factory.mktemp("rooms_k3")
-    student = distill(rooms_teacher, root / "student", replace(tiny_distill_config(steps=20), k=3))
+    student = distill(rooms_teacher, root / "student", replace(tiny_distill_config(steps=5), k=3,
+                                                                steps_per_submodel=True))
     bake_student(student, root / "assets")
     return student, root / "assets"

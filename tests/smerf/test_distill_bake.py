@@ -4,6 +4,7 @@ hold exactly the student's quantised values, the baked renderer agreeing with th
 import gzip
 import math
 import json
+import shutil
 from dataclasses import replace
 
 import numpy as np
@@ -257,12 +258,43 @@ def test_two_rooms_with_k3_bake_one_valid_folder_per_alive_submodel(rooms_k3):
     assert part.num_alive >= 2 and student.sparse.shape[0] == part.num_alive * 32 ** 3
     log = [json.loads(line) for line in (student_dir / "metrics.jsonl").open()]
     assert "consistency" in log[-1]  # the neighbour-consistency loss ran
+    # --steps-per-submodel: 5 steps for each alive submodel, every schedule over the whole run
+    meta = json.loads((student_dir / "config.json").read_text())
+    assert meta["distill"]["steps"] == 5 and meta["distill"]["steps_per_submodel"] is True
+    assert meta["total_steps"] == meta["steps_done"] == 5 * part.num_alive
     folders = sorted(p.name for p in assets.glob("sm_*"))
     assert folders == [f"sm_{i:03d}" for i in part.params_to_sm]
     assert asset_problems(assets) == []
     scene = SceneAssets.open(assets)
     assert scene.params["num_local_submodels"] == part.num_alive and scene.params["num_submodels"] == 27
     assert scene.mlp["ResampleDense_0/kernel"].shape[0] == part.num_alive
+
+
+def test_a_k3_bake_records_the_walk_over_every_test_view_in_order(rooms_k3, tmp_path):
+    """Each sm_XXX/test_frames.json holds the test views whose camera that submodel holds; the file beside them holds
+    all of them in the dataset's order, which `nerfbake view --walkthrough test` flies (it used to fly the entry
+    folder's views and never leave that submodel)."""
+    from nerfbake.data.formats import load_dataset
+    from nerfbake.smerf.bake import test_frames_json, viewer_camera
+    from nerfbake.viewer.browser import read_walkthrough
+    from nerfbake.viewer.server import find_scene
+
+    student_dir, assets = rooms_k3
+    student, _, meta = load_student(student_dir)
+    ds = load_dataset(meta["data"])
+    cams = [ds.frames[i].camera for i in ds.split("test")]
+    expected = test_frames_json([viewer_camera(c, student.partition) for c in cams])["test_frames"]
+    homes = set(student.partition.assign(np.stack([c.origin for c in cams])).tolist())
+    assert len(homes) >= 2  # the walk crosses a boundary
+    per_folder = [json.loads(p.read_text())["test_frames"] for p in sorted(assets.glob("sm_*/test_frames.json"))]
+    assert sum(len(f) for f in per_folder) == len(expected) and max(len(f) for f in per_folder) < len(expected)
+    for entry in (assets, assets / "sm_000" if (assets / "sm_000").is_dir() else next(assets.glob("sm_*"))):
+        walk = read_walkthrough("test", find_scene(entry))
+        np.testing.assert_allclose([f["position"] for f in walk], [f["position"] for f in expected], atol=1e-6)
+    older = shutil.copytree(assets, tmp_path / "older")  # a bake from before the file: every folder's views in turn
+    (older / "test_frames.json").unlink()
+    walk = read_walkthrough("test", find_scene(older))
+    assert sorted(map(tuple, (f["position"] for f in walk))) == sorted(map(tuple, (f["position"] for f in expected)))
 
 
 def test_a_camera_near_a_partition_boundary_looks_alike_from_both_submodels(rooms_k3, rooms_teacher):

@@ -144,6 +144,12 @@ def test_walkthrough_streams_across_submodels_without_a_blank_frame(rooms_k3, tm
     for f in out["per_frame"]:
         assert f["loading"] is None or f["active"] != f["loading"]  # while one streams, another is drawn
     assert 0 < out["p50_ms"] <= out["p95_ms"] <= out["max_ms"]
+    # `--walkthrough test`: every test view of the scene in the dataset's order, across the submodels holding them
+    assert main(["view", str(assets), "--benchmark", "--walkthrough", "test", "--json"]) == 0
+    walk = json.loads(capsys.readouterr().out)
+    views = json.loads((assets / "test_frames.json").read_text())["test_frames"]
+    assert walk["path_cameras"] == len(views) and walk["blank_frames"] == 0 and walk["max_resident"] <= 2
+    assert len(set(walk["submodels_drawn"])) >= 2
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps({"frames": [{"position": [0, 0, 0]}]}))
     assert main(["view", str(assets), "--benchmark", "--walkthrough", str(bad)]) == 2

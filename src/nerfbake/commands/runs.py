@@ -183,7 +183,7 @@ class View(Command):
         if self.walkthrough and not self.benchmark:
             raise ValueError("--walkthrough flies the viewer headless: give it with --benchmark")
         if self.walkthrough:
-            return run_walkthrough(scene, read_walkthrough(self.walkthrough), software_gl=not self.gpu)
+            return run_walkthrough(scene, read_walkthrough(self.walkthrough, scene), software_gl=not self.gpu)
         if self.benchmark:
             return run_benchmark(scene, frame_mult=self.frame_mult, frames_per_view=self.frames, warmup=self.warmup,
                                  max_views=self.max_views, software_gl=not self.gpu)

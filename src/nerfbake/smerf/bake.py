@@ -11,8 +11,9 @@ folder per alive submodel). The steps follow the authors' baker (``shared/refere
    apron) with a uint8 block-index grid (255 = empty), each atlas side <= 2048;
 5. uint8 quantisation with the documented ranges; plane texels the viewer can never read (outside every occupied
    factor-4 column, dilated by one texel) set to byte 0, as the authors' baker does;
-6. ``scene_params.json`` (+ .gz), ``deferred_mlp.json.gz``, ``test_frames.json``, arrays as ``raw.gz`` in reversed
-   axis order.
+6. ``scene_params.json`` (+ .gz), ``deferred_mlp.json.gz``, ``test_frames.json`` (the test views whose camera the
+   submodel holds), arrays as ``raw.gz`` in reversed axis order; beside the folders ``bake.json`` and a
+   ``test_frames.json`` with every test view in the dataset's order (the walk across submodels).
 
 Everything is written to a temporary sibling folder and renamed into place at the end: no half-written output.
 """
@@ -226,6 +227,9 @@ def viewer_camera(camera, partition, near: float = 0.02, far: float = 100.0):
     return ViewerCamera(position, rotation, proj, w, h)
 
 
+WALK_FRAMES = "test_frames.json"  # beside the sm_XXX/ folders: the scene's test cameras in the dataset's order
+
+
 def test_frames_json(cameras) -> dict:
     """``test_frames.json`` content: column-major 4x4 matrices (three.js ``fromArray``)."""
     frames = []
@@ -377,6 +381,9 @@ def bake_student(student_dir: str | Path, out: str | Path, stride: int = 2, over
                           "camera_radius": camera_radius,
                           "ranks": dp.world})
             (tmp / "bake.json").write_text(json.dumps(stats, indent=2))
+            # every test camera in the dataset's order (each sm_XXX/ holds only its own): the walk across submodels
+            # that `nerfbake view --benchmark --walkthrough test` flies
+            (tmp / WALK_FRAMES).write_text(json.dumps(test_frames_json([viewer_camera(c, part) for c in test_cams])))
             replace_folder(tmp, out)
         dp.barrier()
     except BaseException:

@@ -25,6 +25,7 @@ A student folder holds ``config.json`` (this config, the partition, the teacher 
 """
 from __future__ import annotations
 
+from dataclasses import replace
 import json
 import math
 import time
@@ -214,6 +215,8 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
         sized_by_surfaces = cfg.k == 1 and cfg.core_quantile > 0
         reach = surface_distances(teacher, store, bg, dp.device, cfg.seed) if sized_by_surfaces else None
         partition = Partition.from_cameras(origins, cfg.k, surface_distances=reach, core_quantile=cfg.core_quantile)
+    asked = cfg
+    cfg = replace(cfg, steps=cfg.total_steps(partition.num_alive))  # every schedule spans the whole run
     torch.manual_seed(cfg.seed)
     student = Student(cfg.student, partition, cfg.seed).to(dp.device)
     if cfg.warm_start and not (resume and (out / CHECKPOINT).is_file()):
@@ -230,7 +233,8 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
         start = int(state["step"])
         if dp.is_main:
             console.print(f"resuming {out} at step {start}")
-    meta = {"kind": "smerf-student", "distill": to_jsonable(cfg), "partition": partition.to_json(),
+    meta = {"kind": "smerf-student", "distill": to_jsonable(asked), "total_steps": cfg.steps,
+            "partition": partition.to_json(),
             "teacher": str(Path(teacher_run).resolve()), "data": tmeta["data"], "downscale": downscale,
             "normalize": tcfg.normalize,
             "num_submodels": partition.num_alive, "git": git_revision(), "world_size": dp.world, "complete": False}

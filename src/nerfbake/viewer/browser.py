@@ -139,12 +139,24 @@ def run_benchmark(scene, sizes=((512, 512), (1280, 720)), frame_mult: int = 1, f
     return out
 
 
-def read_walkthrough(path) -> list[dict] | None:
+def read_walkthrough(path, scene=None) -> list[dict] | None:
     """A camera path file for ``nerfbake view --walkthrough``: ``test`` (the scene's test cameras in order), a
     ``test_frames.json`` (``{"test_frames": [{position, rotation, projection}, ...]}``), or ``{"frames": [...]}`` /
-    a list of ``{"position": [x, y, z], "forward": [x, y, z]}`` poses in the viewer's frame."""
+    a list of ``{"position": [x, y, z], "forward": [x, y, z]}`` poses in the viewer's frame.
+
+    ``test`` on a SMERF ``scene`` is the bake's own walk, ``test_frames.json`` beside the ``sm_XXX/`` folders, which
+    holds every test view in the dataset's order: each folder's own file holds only the views whose camera that
+    submodel holds, so the entry folder's views never leave it. Bakes from before that file walk every folder's views,
+    folder after folder. None: the viewer's own test views (an octree's orbit)."""
     if str(path) == "test":
-        return None
+        if scene is None or scene.kind != "smerf":
+            return None
+        whole = scene.root / "test_frames.json"
+        if whole.is_file():
+            return read_walkthrough(whole)
+        folders = sorted(p for p in scene.root.glob("sm_*") if (p / "test_frames.json").is_file())
+        frames = [f for folder in folders for f in json.loads((folder / "test_frames.json").read_text())["test_frames"]]
+        return frames if len(frames) >= 2 else None
     p = Path(path)
     try:
         data = json.loads(p.read_text())
