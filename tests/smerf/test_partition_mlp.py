@@ -102,6 +102,29 @@ def test_partition_cube_grows_until_a_share_of_the_surfaces_lies_in_the_core():
     assert Partition.from_cameras(cams, 2, surface_distances=surfaces).scale == Partition.from_cameras(cams, 2).scale
 
 
+def test_an_object_ringed_by_cameras_is_scaled_up_to_fill_the_core():
+    """``fill_quantile``: an object whose surfaces all lie well inside the K = 1 core gets a larger submodel scale, so
+    that share of them reaches the core's face; a scene reaching past the core, K > 1, and an explicit factor keep
+    theirs, and the growth stops at MAX_FILL times the authors' 2.5."""
+    from nerfbake.smerf.partition import MAX_FILL
+
+    ring = np.stack([4 * np.cos(np.linspace(0, 6, 30)), 4 * np.sin(np.linspace(0, 6, 30)), np.ones(30)], 1)
+    object_surfaces = np.linspace(0.2, 1.0, 101)
+    authors = Partition.from_cameras(ring, 1, surface_distances=object_surfaces)
+    assert authors.scale_factor == 2.5 and authors.submodel_scale * authors.scale * 1.0 < 0.7  # a core 30 % empty
+    part = Partition.from_cameras(ring, 1, surface_distances=object_surfaces, fill_quantile=0.9)
+    assert part.scale == authors.scale and part.sm_to_params == authors.sm_to_params  # the cube is the cameras' still
+    reach = part.submodel_scale * part.scale * object_surfaces
+    assert np.quantile(reach, 0.9) == pytest.approx(0.95) and part.scale_factor > 3.5
+    tiny = Partition.from_cameras(ring, 1, surface_distances=object_surfaces * 0.01, fill_quantile=0.9)
+    assert tiny.scale_factor == pytest.approx(MAX_FILL * 2.5)
+    walls = np.linspace(0.5, 6.0, 60)  # surfaces beyond the core already: nothing to fill
+    assert Partition.from_cameras(ring, 1, surface_distances=walls, fill_quantile=0.9).scale_factor == 2.5
+    assert Partition.from_cameras(ring, 2, surface_distances=object_surfaces, fill_quantile=0.9).scale_factor == 0.8
+    assert Partition.from_cameras(ring, 1, scale_factor=2.5, surface_distances=object_surfaces,
+                                  fill_quantile=0.9).scale_factor == 2.5
+
+
 def test_boundary_cameras_are_the_ones_nearest_a_face_shared_with_an_alive_neighbour():
     rng = np.random.default_rng(1)
     # two rooms along x, every camera at one y and z: with K = 2 only the two cells split at x = 0 come alive

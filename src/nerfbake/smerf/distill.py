@@ -212,9 +212,10 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
         partition = Partition.from_json(json.loads((out / CONFIG).read_text())["partition"])
     else:
         origins = np.stack([ds.frames[i].camera.origin for i in train_idx])
-        sized_by_surfaces = cfg.k == 1 and cfg.core_quantile > 0
+        sized_by_surfaces = cfg.k == 1 and (cfg.core_quantile > 0 or cfg.core_fill_quantile > 0)
         reach = surface_distances(teacher, store, bg, dp.device, cfg.seed) if sized_by_surfaces else None
-        partition = Partition.from_cameras(origins, cfg.k, surface_distances=reach, core_quantile=cfg.core_quantile)
+        partition = Partition.from_cameras(origins, cfg.k, surface_distances=reach, core_quantile=cfg.core_quantile,
+                                           fill_quantile=cfg.core_fill_quantile)
     asked = cfg
     cfg = replace(cfg, steps=cfg.total_steps(partition.num_alive))  # every schedule spans the whole run
     torch.manual_seed(cfg.seed)

@@ -38,6 +38,9 @@ def layer_offsets(span: np.ndarray, k: int) -> np.ndarray:
     return out
 
 
+MAX_FILL = 4.0  # fill_quantile grows the K = 1 submodel scale factor by at most this much
+
+
 @dataclass
 class Partition:
     """SMERF's K^3 camera-based partition: the scene normalised so the cameras fill [-1, 1]^3, cut into K^3 cells, a
@@ -62,7 +65,8 @@ class Partition:
 
     @classmethod
     def from_cameras(cls, origins: np.ndarray, k: int, margin: float = 0.05, scale_factor: float | None = None,
-                     surface_distances: np.ndarray | None = None, core_quantile: float = 0.1) -> "Partition":
+                     surface_distances: np.ndarray | None = None, core_quantile: float = 0.1,
+                     fill_quantile: float = 0.0) -> "Partition":
         """Normalise camera origins (N, 3) into [-1 + margin, 1 - margin]^3 (uniform scale) and mark alive cells.
 
         With K = 1 the cube is centred on the world origin, which the dataset loaders put at the scene's centre
@@ -76,7 +80,11 @@ class Partition:
         uncontracted core (``core_quantile`` 0: the cameras alone size it). Sized by its cameras alone, a
         forward-facing capture (fern: cameras within 0.4 of the origin, the scene 1.3 to 6 in front) put every
         surface in the outer 7 % of the contracted shell. Cameras around an object or among the surfaces of a room
-        keep the cameras' cube, the authors' rule."""
+        keep the cameras' cube, the authors' rule.
+
+        ``fill_quantile`` (K = 1, 0: off): when that share of the surfaces lies well inside the core at the authors'
+        factor (an object ringed by cameras), the factor grows, up to :data:`MAX_FILL` times, until they reach the
+        core's face, so the grids spend their texels on the object rather than on the empty core around it."""
         if k < 1:
             raise PartitionError(f"K must be >= 1, got {k}")
         origins = np.asarray(origins, np.float64)
@@ -91,6 +99,11 @@ class Partition:
             if reach > half:  # the scene lies beyond the cameras' span: size the cube so ``reach`` meets the core's face
                 half = factor * (1.0 - margin) * reach
         scale = (1.0 - margin) / half if half > 0 else 1.0
+        if k == 1 and fill_quantile > 0 and scale_factor is None and surface_distances is not None \
+                and len(surface_distances):
+            extent = float(np.quantile(surface_distances, fill_quantile)) * scale  # cube units
+            if extent > 0:
+                factor = float(np.clip((1.0 - margin) / extent, factor, MAX_FILL * factor))
         if k > 1 and half > 0:
             centre = centre - layer_offsets((hi - lo) * scale, k) / scale
         part = cls(k, centre, scale, [-1] * k ** 3, factor)
