@@ -219,20 +219,27 @@ def test_unique_rows_groups_equal_rows_as_torch_unique_does():
     assert sorted(map(tuple, uniq.tolist())) == sorted(map(tuple, ref.tolist()))
 
 
-def test_deferred_mlp_json_reads_back_the_same_float32_weights():
+def test_deferred_mlp_json_reads_back_the_weights_at_the_precision_asked():
     import gzip
     import json
 
     from nerfbake.smerf.deferred_mlp import deferred_mlp_text
 
     export = GridMLP(3, width=16, grid=5, generator=torch.Generator().manual_seed(0)).export()
-    back = json.loads(deferred_mlp_text(export))
-    assert list(back) == list(export)
-    for name, entry in export.items():
-        assert back[name]["shape"] == entry["shape"]
-        np.testing.assert_array_equal(np.float32(back[name]["data"]), np.float32(entry["data"]))
-    # the shortest float32 digits, not a widened double's 17: the gzip file is markedly smaller
-    assert len(gzip.compress(deferred_mlp_text(export).encode())) < 0.75 * len(gzip.compress(json.dumps(export).encode()))
+    for precision in (np.float32, np.float16):
+        back = json.loads(deferred_mlp_text(export, precision))
+        assert list(back) == list(export)
+        for name, entry in export.items():
+            assert back[name]["shape"] == entry["shape"]
+            # the shortest digits that read back as the same value at that precision
+            np.testing.assert_array_equal(np.float32(back[name]["data"]).astype(precision),
+                                          np.float32(entry["data"]).astype(precision))
+    # the shortest digits, not a widened double's 17: the gzip file is markedly smaller, and half again at float16
+    size = {p: len(gzip.compress(deferred_mlp_text(export, p).encode())) for p in (np.float32, np.float16)}
+    assert size[np.float32] < 0.75 * len(gzip.compress(json.dumps(export).encode()))
+    assert size[np.float16] < 0.65 * size[np.float32]
+    big = {"w": {"shape": [2], "data": [1e5, 0.1234567]}}  # past float16's range: that array stays float32
+    assert np.float32(json.loads(deferred_mlp_text(big))["w"]["data"]).tolist() == np.float32([1e5, 0.1234567]).tolist()
     export["ResampleDense_0/bias"]["data"][0] = float("nan")
     with pytest.raises(ValueError, match="non-finite"):
         deferred_mlp_text(export)
