@@ -156,6 +156,26 @@ def test_baked_assets_follow_the_format_rules_and_hold_the_students_values(tiny_
     assert sm.occupancy[8].any() and (sm.distance[8][sm.occupancy[8] > 0] == 0).all()
 
 
+def test_the_baked_mlp_is_the_students_at_float16_and_renders_as_the_exact_weights(tiny_student, tiny_assets_dir):
+    """deferred_mlp.json.gz holds the student's weights rounded to float16 digits; rendering with the exact float32
+    weights instead moves no pixel by a tenth of an 8-bit step."""
+    from nerfbake.data.formats import load_dataset
+    from nerfbake.smerf.bake import viewer_camera
+    from nerfbake.smerf.baked_render import render_baked
+
+    student, _, meta = load_student(tiny_student)
+    scene = SceneAssets.open(tiny_assets_dir)
+    exact = {k: np.asarray(v["data"], np.float32).reshape(v["shape"]) for k, v in student.mlp.export().items()}
+    assert set(scene.mlp) == set(exact)
+    for k, v in exact.items():
+        assert np.array_equal(scene.mlp[k].astype(np.float16), v.astype(np.float16)) and not np.array_equal(scene.mlp[k], v)
+    ds = load_dataset(meta["data"])
+    cam = viewer_camera(ds.frames[ds.split("test")[0]].camera, student.partition)
+    written = render_baked(scene, cam)
+    scene.mlp = exact
+    assert np.abs(render_baked(scene, cam) - written).max() < 0.1 / 255
+
+
 def test_baked_renderer_matches_the_student_on_a_smooth_scene(tmp_path):
     """Bake a hand-made student (a smooth density blob with smoothly varying colour) and render one view both ways:
     the student integrating densely along world rays, and the viewer-exact renderer marching the baked assets."""
