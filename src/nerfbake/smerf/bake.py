@@ -227,7 +227,7 @@ def viewer_camera(camera, partition, near: float = 0.02, far: float = 100.0):
     return ViewerCamera(position, rotation, proj, w, h)
 
 
-WALK_FRAMES = "test_frames.json"  # beside the sm_XXX/ folders: the scene's test cameras in the dataset's order
+TEST_FRAMES = "test_frames.json"  # in each sm_XXX/ its own test views; beside the folders all of them, in order
 
 
 def test_frames_json(cameras) -> dict:
@@ -303,7 +303,7 @@ def write_submodel(folder: Path, student, params_idx: int, alive: torch.Tensor, 
     (folder / "scene_params.json").write_text(text)
     (folder / "scene_params.json.gz").write_bytes(gzip.compress(text.encode(), mtime=0))
     (folder / "deferred_mlp.json.gz").write_bytes(gzip.compress(deferred_mlp_text(mlp_json).encode(), mtime=0))
-    (folder / "test_frames.json").write_text(json.dumps(frames))
+    (folder / TEST_FRAMES).write_text(json.dumps(frames))
     return {"alive_voxels": int(alive.sum()), "alive_blocks": sizes["num_alive_blocks"],
             "atlas": [sizes["atlas_width"], sizes["atlas_height"], sizes["atlas_depth"]]}
 
@@ -331,6 +331,7 @@ def bake_student(student_dir: str | Path, out: str | Path, stride: int = 2, over
     home = part.assign(origins)
     test_cams = [ds.frames[i].camera for i in ds.split("test")]
     test_home = part.assign(np.stack([c.origin for c in test_cams])) if test_cams else np.zeros(0, int)
+    test_views = [viewer_camera(c, part) for c in test_cams]
     threshold = cfg.cull_alpha[1]
     bg = teacher_background(ds)
     mlp_json = student.mlp.export()
@@ -360,7 +361,7 @@ def bake_student(student_dir: str | Path, out: str | Path, stride: int = 2, over
             if not alive.any():
                 raise BakeError(f"submodel {p}: no voxel passes the alpha/weight threshold {threshold}; the student "
                                 "renders nothing from its cameras (distil longer or check the teacher)")
-            frames = test_frames_json([viewer_camera(c, part) for c, h in zip(test_cams, test_home) if h == p])
+            frames = test_frames_json([v for v, h in zip(test_views, test_home) if h == p])
             sm_dir = tmp / f"sm_{part.params_to_sm[p]:03d}"
             stats["submodels"][sm_dir.name] = write_submodel(sm_dir, student, p, alive, mlp_json, frames)
             console.print(f"{sm_dir.name}: {stats['submodels'][sm_dir.name]}")
@@ -383,7 +384,7 @@ def bake_student(student_dir: str | Path, out: str | Path, stride: int = 2, over
             (tmp / "bake.json").write_text(json.dumps(stats, indent=2))
             # every test camera in the dataset's order (each sm_XXX/ holds only its own): the walk across submodels
             # that `nerfbake view --benchmark --walkthrough test` flies
-            (tmp / WALK_FRAMES).write_text(json.dumps(test_frames_json([viewer_camera(c, part) for c in test_cams])))
+            (tmp / TEST_FRAMES).write_text(json.dumps(test_frames_json(test_views)))
             replace_folder(tmp, out)
         dp.barrier()
     except BaseException:

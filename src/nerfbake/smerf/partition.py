@@ -94,14 +94,14 @@ class Partition:
         lo, hi = origins.min(0), origins.max(0)
         centre = (lo + hi) / 2 if k > 1 else np.zeros(3)
         half = float(np.abs(origins - centre).max())
-        if k == 1 and core_quantile > 0 and surface_distances is not None and len(surface_distances):
-            reach = float(np.quantile(surface_distances, core_quantile))
+        surfaces = surface_distances if k == 1 and surface_distances is not None and len(surface_distances) else None
+        if surfaces is not None and core_quantile > 0:
+            reach = float(np.quantile(surfaces, core_quantile))
             if reach > half:  # the scene lies beyond the cameras' span: size the cube so ``reach`` meets the core's face
                 half = factor * (1.0 - margin) * reach
         scale = (1.0 - margin) / half if half > 0 else 1.0
-        if k == 1 and fill_quantile > 0 and scale_factor is None and surface_distances is not None \
-                and len(surface_distances):
-            extent = float(np.quantile(surface_distances, fill_quantile)) * scale  # cube units
+        if surfaces is not None and fill_quantile > 0 and scale_factor is None:
+            extent = float(np.quantile(surfaces, fill_quantile)) * scale  # cube units
             if extent > 0:
                 factor = float(np.clip((1.0 - margin) / extent, factor, MAX_FILL * factor))
         if k > 1 and half > 0:

@@ -49,7 +49,7 @@ class DistillConfig:
         "help": "image downscale of the training photos (default: the teacher's)"})
     warm_start: bool = True  # start the sparse density from the teacher's (distill.warm_start_density)
     core_quantile: float = 0.1  # K = 1: the share of the training views' surfaces kept in the core (Partition)
-    core_fill_quantile: float = 0.0  # K = 1: the share of them the core is shrunk onto, for an object (Partition)
+    core_fill_quantile: float = 0.0  # K = 1: the share of them grown to fill the core, for an object (Partition)
     cull_alpha: tuple[float, float] = (5e-4, 5e-3)
     cull_window: tuple[float, float] = (0.4, 0.8)  # fractions of the run over which culling ramps up
     quantize: bool = True
