@@ -8,7 +8,9 @@ from nerfbake.smerf.assets import VIEWER_FROM_TRAIN
 from nerfbake.smerf.baked_render import deferred_mlp_weights
 from nerfbake.smerf.deferred_mlp import GridMLP, unique_rows
 from nerfbake.smerf.partition import Partition, PartitionError
+from nerfbake.smerf.run import distill_preset
 from nerfbake.smerf.seams import boundary_cameras
+from nerfbake.smerf.student import Student, StudentConfig, mlp_lattice_size
 
 
 def test_baking_cameras_are_those_within_one_and_a_half_cells_of_the_centre():
@@ -156,6 +158,25 @@ def test_grid_mlp_interpolation_matches_the_viewer():
         ours = mlp.weights_at(torch.zeros(1, dtype=torch.long), train_pos)
         for (k, b), (rk, rb) in zip(ours, ref):
             assert np.allclose(k[0].detach().numpy(), rk, atol=1e-5) and np.allclose(b[0].detach().numpy(), rb, atol=1e-5)
+
+
+def test_one_deferred_mlp_at_k1_the_authors_lattice_above_and_the_viewer_reads_either():
+    rooms = np.concatenate([np.random.default_rng(0).uniform([-4, -1, -1], [-2, 1, 1], (30, 3)),
+                            np.random.default_rng(1).uniform([2, 3, -1], [4, 5, 1], (30, 3))])
+    k1, k2 = Partition.from_cameras(rooms, k=1), Partition.from_cameras(rooms, k=2)
+    assert Student(StudentConfig(sparse_resolution=4, triplane_resolution=8), k1).mlp.grid == 1
+    assert Student(StudentConfig(sparse_resolution=4, triplane_resolution=8), k2).mlp.grid == 5
+    assert mlp_lattice_size(StudentConfig(mlp_grid=3), 1) == 3 and mlp_lattice_size(StudentConfig(mlp_grid=1), 2) == 1
+    assert distill_preset("paper").student.mlp_grid == 5  # the authors' lattice at every K in the GPU preset
+    # P = 1: the viewer's corner clamping gives the one MLP at every camera position, inside the cell or not
+    mlp = GridMLP(1, grid=1, generator=torch.Generator().manual_seed(0))
+    exported = {k: np.asarray(v["data"], np.float32).reshape(v["shape"]) for k, v in mlp.export().items()}
+    assert exported["ResampleDense_0/kernel"].shape[1:4] == (1, 1, 1)
+    params = {"num_submodels": 1, "num_local_submodels": 1, "submodel_voxel_size": 2.0, "params_to_sm": [0]}
+    for viewer_pos in np.random.default_rng(2).uniform(-1.5, 1.5, (4, 3)):
+        for i, (k, b) in enumerate(deferred_mlp_weights(exported, params, 0, viewer_pos)):
+            assert np.allclose(k, exported[f"ResampleDense_{i}/kernel"][0, 0, 0, 0], atol=1e-6)
+            assert np.allclose(b, exported[f"ResampleDense_{i}/bias"][0, 0, 0, 0], atol=1e-6)
 
 
 def test_grid_mlp_trains_and_its_tv_is_zero_when_constant():

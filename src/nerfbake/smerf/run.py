@@ -91,7 +91,8 @@ def distill_preset(name: str, k: int = 1) -> DistillConfig:
         return DistillConfig(preset=name, k=k, steps=6500, student=StudentConfig(sparse_resolution=sparse))
     if name == "paper":  # SMERF's 50k steps of 65k rays at R = 2048 / L = 512 (explicit grids need ~17 GB per submodel)
         return DistillConfig(preset=name, k=k, steps=50_000, batch_patches=7282, checkpoint_every=5000, val_every=5000,
-                             cull_window=(0.4, 0.8), student=StudentConfig(sparse_resolution=512, triplane_resolution=2048))
+                             cull_window=(0.4, 0.8),
+                             student=StudentConfig(sparse_resolution=512, triplane_resolution=2048, mlp_grid=5))
     raise ValueError(f"unknown preset {name!r}; choose cpu-small or paper")
 
 
