@@ -113,6 +113,8 @@ def main() -> None:
                     "distillation's --steps-per-submodel) rather than shared by them")
     ap.add_argument("--sparse", type=int, default=128, help="sparse grid S per submodel, every K")
     ap.add_argument("--triplane", type=int, default=512, help="triplane T per submodel, every K")
+    ap.add_argument("--mlp-grid", type=int, help="the deferred-MLP lattice P for every K (default: by K, one MLP at "
+                    "K = 1 and the authors' 5 above; 5 compares with the figures from before that default)")
     ap.add_argument("--k", "--ks", dest="ks", default="1,2", help="the K values, comma-separated")
     ap.add_argument("--walkthrough", action="store_true", help="also fly the viewer along the test cameras per K")
     ap.add_argument("--warm-start", choices=("on", "off"), help="the students' warm start from the teacher's "
@@ -151,7 +153,8 @@ def main() -> None:
         assets = work / (f"assets_k{k}" if args.camera_radius == 1.5 else f"assets_k{k}_r{args.camera_radius:g}")
         cfg = distill_preset("cpu-small", k)
         cfg = replace(cfg, steps=args.steps, student=StudentConfig(sparse_resolution=args.sparse,
-                                                                     triplane_resolution=args.triplane))
+                                                                     triplane_resolution=args.triplane,
+                                                                     mlp_grid=args.mlp_grid))
         if args.warm_start:
             cfg = replace(cfg, warm_start=args.warm_start == "on")
         if args.steps_per_submodel:
