@@ -94,6 +94,9 @@ def test_distillation_learns_and_resumes_to_the_same_student(tiny_teacher, tiny_
     from nerfbake.teacher.run import load_teacher
 
     trained, cfg, meta = load_student(tiny_student)
+    assert trained.mlp.grid == 1  # K = 1: one deferred MLP
+    log = [json.loads(line) for line in (tiny_student / "metrics.jsonl").open()]
+    assert all(np.isfinite(r["loss"]) for r in log if "loss" in r)  # its TV term once logged NaN (no neighbours)
     teacher, _, tmeta, _ = load_teacher(tiny_teacher)
     start = Student(cfg.student, trained.partition, cfg.seed)  # the student as distillation starts it
     assert cfg.warm_start  # the default

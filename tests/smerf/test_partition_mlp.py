@@ -172,6 +172,7 @@ def test_one_deferred_mlp_at_k1_the_authors_lattice_above_and_the_viewer_reads_e
     mlp = GridMLP(1, grid=1, generator=torch.Generator().manual_seed(0))
     exported = {k: np.asarray(v["data"], np.float32).reshape(v["shape"]) for k, v in mlp.export().items()}
     assert exported["ResampleDense_0/kernel"].shape[1:4] == (1, 1, 1)
+    assert float(mlp.tv_loss()) == 0.0  # no neighbours: no TV (not the NaN mean of nothing)
     params = {"num_submodels": 1, "num_local_submodels": 1, "submodel_voxel_size": 2.0, "params_to_sm": [0]}
     for viewer_pos in np.random.default_rng(2).uniform(-1.5, 1.5, (4, 3)):
         for i, (k, b) in enumerate(deferred_mlp_weights(exported, params, 0, viewer_pos)):

@@ -109,8 +109,11 @@ class GridMLP(nn.Module):
         return torch.sigmoid(h)
 
     def tv_loss(self) -> torch.Tensor:
-        """Mean squared difference between lattice neighbours along each axis (the authors' L2 TV, weight 0.1)."""
-        total = 0.0
+        """Mean squared difference between lattice neighbours along each axis (the authors' L2 TV, weight 0.1); zero
+        for a single MLP (P = 1), which has no neighbours (the mean of no differences would be NaN)."""
+        total = torch.zeros((), device=self.kernels[0].device)
+        if self.grid < 2:
+            return total
         for p in list(self.kernels) + list(self.biases):
             for axis in (1, 2, 3):
                 total = total + (p.diff(dim=axis) ** 2).mean()
