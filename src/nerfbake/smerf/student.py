@@ -52,9 +52,8 @@ def mlp_lattice_size(cfg: StudentConfig, k: int) -> int:
     """P of the deferred-MLP lattice: ``cfg.mlp_grid``, or by default one MLP at K = 1 (MERF's deferred MLP) and the
     authors' 5^3 lattice per submodel above. SMERF's lattice buys 0.58 dB on its large scenes, trained 50k+ steps
     with thousands of cameras; a K = 1 object ringed by 48 cameras gives each of its 125 MLPs a few cameras' rays
-    for 1200 steps, and the held-out views fall between them: `make demo`'s scene baked at 30.91 / 30.61 dB (two
-    seeds) with P = 5 and 32.11 with P = 1 (teacher 33.50; with core_fill_quantile 0.98, 31.44 / 30.85 against
-    32.73 / 32.47)."""
+    for 1200 steps, and the held-out views fall between them (`make demo`'s scene, baked: 30.91 -> 32.11 dB; the
+    figures are in :func:`nerfbake.pipeline.demo_config`)."""
     if cfg.mlp_grid is not None:
         return cfg.mlp_grid
     return 1 if k == 1 else 5
