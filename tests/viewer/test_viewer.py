@@ -137,7 +137,10 @@ def test_walkthrough_streams_across_submodels_without_a_blank_frame(rooms_k3, tm
     path.write_text(json.dumps({"frames": [{"position": c, "forward": [0.0, 0.0, -1.0]} for c in centers]}))
     assert main(["view", str(assets), "--benchmark", "--walkthrough", str(path), "--json"]) == 0
     out = json.loads(capsys.readouterr().out)
-    assert out["console_errors"] == [] and out["frames"] == 3 + 2 * 3 and out["path_cameras"] == 3
+    # 3 path cameras and 3 interpolated frames on each of the 2 legs, then the last camera held until its own
+    # submodel has streamed in (how long that takes is the machine's; that it ends there is the viewer's)
+    assert out["console_errors"] == [] and out["frames"] == 3 + 2 * 3 + out["held_frames"] and out["path_cameras"] == 3
+    assert out["settled"] and out["per_frame"][-1]["active"] == 2
     assert out["blank_frames"] == 0 and all(f["drawn"] and f["mean"] > 1.0 for f in out["per_frame"])
     assert out["max_resident"] <= 2 and set(out["uploads"]) >= {0, 1, 2}  # and any the legs pass through
     assert set(out["submodels_drawn"]) >= {0, 1, 2}

@@ -203,6 +203,8 @@ class View(Command):
         if self.walkthrough:
             return (f"{r['frames']} frames: p50 {r['p50_ms']:.1f} ms, p95 {r['p95_ms']:.1f} ms, max {r['max_ms']:.1f} "
                     f"ms; {r['frames_while_loading']} drawn while a submodel loaded, {r['blank_frames']} blank; at most "
-                    f"{r['max_resident']} submodels resident, host cache {r['max_host_cache']}")
+                    f"{r['max_resident']} submodels resident, host cache {r['max_host_cache']}; the last camera held "
+                    f"{r['held_frames']} frames " + ("until its own submodel was drawn" if r["settled"] else
+                                                      "and its own submodel never arrived"))
         return "\n".join(f"{s['width']}x{s['height']}: {s['mean_ms_per_frame']:.2f} ms/frame ({s['fps']:.1f} fps) on "
                          f"{s['renderer']}" for s in r["sizes"])

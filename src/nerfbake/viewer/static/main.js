@@ -252,29 +252,46 @@ class App {
     const frames = [];
     const lerp = (a, b, t) => a.map((v, i) => v + (b[i] - v) * t);
     const up = this.controls.up;
+    const last = path[path.length - 1];
+    const legs = [];
     for (let i = 0; i < path.length; i++) {
       for (let k = 0; k <= (i + 1 < path.length ? between : 0); k++) {
         const t = k / (between + 1);
         const a = path[i], b = path[Math.min(i + 1, path.length - 1)];
-        const cam = k === 0 ? a : {...a, position: lerp(a.position, b.position, t),
-                                       rotation: lookRotation(lerp(viewForward(a.rotation), viewForward(b.rotation), t), up)};
-        this.scene.update(cam.position);
-        const t0 = performance.now();
-        const drawn = this.scene.draw(cam, target, width, height);
-        finish(gl);
-        const ms = performance.now() - t0;
-        const s = this.scene.state();
-        frames.push({ms, drawn: !!drawn, mean: meanBrightness(target.read()), active: s.active ?? null,
-                     loading: s.loading ?? null, resident: s.resident || [], host_cache: (s.hostCache || []).length});
-        await new Promise(requestAnimationFrame);  // let fetches and uploads go on between frames, as on screen
+        legs.push(k === 0 ? a : {...a, position: lerp(a.position, b.position, t),
+                                  rotation: lookRotation(lerp(viewForward(a.rotation), viewForward(b.rotation), t), up)});
       }
     }
+    // A user who stops at the path's end sees its own submodel once it has streamed in: the walk holds the last
+    // camera until then (at most `holdMs`), so how long the arrival took is measured rather than cut off.
+    const holdMs = 20000;
+    let holdStart = null, held = 0;
+    for (let n = 0; ; n++) {
+      const holding = n >= legs.length;
+      if (holding) {
+        if (this.scene.settledAt(last.position)) break;
+        holdStart = holdStart ?? performance.now();
+        if (performance.now() - holdStart > holdMs) break;
+        held++;
+      }
+      const cam = holding ? last : legs[n];
+      this.scene.update(cam.position);
+      const t0 = performance.now();
+      const drawn = this.scene.draw(cam, target, width, height);
+      finish(gl);
+      const ms = performance.now() - t0;
+      const s = this.scene.state();
+      frames.push({ms, drawn: !!drawn, mean: meanBrightness(target.read()), active: s.active ?? null, held: holding,
+                   loading: s.loading ?? null, resident: s.resident || [], host_cache: (s.hostCache || []).length});
+      await new Promise(requestAnimationFrame);  // let fetches and uploads go on between frames, as on screen
+    }
+    const settled = this.scene.settledAt(last.position);
     target.dispose();
     this.running = true;
     requestAnimationFrame((t) => this.loop(t));
     const times = frames.map((f) => f.ms);
     return {
-      width, height, frames: frames.length, path_cameras: path.length, between,
+      width, height, frames: frames.length, path_cameras: path.length, between, held_frames: held, settled,
       p50_ms: percentile(times, 50), p95_ms: percentile(times, 95), max_ms: Math.max(...times),
       frames_while_loading: frames.filter((f) => f.loading !== null).length,
       blank_frames: frames.filter((f) => !f.drawn || f.mean < 1.0).length,

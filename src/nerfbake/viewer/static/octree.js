@@ -50,6 +50,7 @@ export class OctreeScene {
 
   update() {}
   async ready() {}
+  settledAt() { return true; }
   state() {
     const env = this.tree.env ? [this.tree.env.height, this.tree.env.width] : null;
     return {numLeaves: this.tree.numLeaves, nb: this.tree.nb, envMap: env, tiles: {child: this.childLayout, data: this.dataLayout}};

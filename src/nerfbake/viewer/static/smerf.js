@@ -116,6 +116,11 @@ export class SmerfScene {
     this.pending.catch((e) => this.onError && this.onError(e));
   }
 
+  // Whether what is drawn at `position` is its own submodel, with nothing left streaming.
+  settledAt(position) {
+    return this.loading === null && this.active >= 0 && this.slots[this.active].idx === this.submodelForPosition(position);
+  }
+
   async ready(position) {
     this.update(position);
     while (this.loading !== null) await this.pending.catch(() => {});
