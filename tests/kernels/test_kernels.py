@@ -1,11 +1,15 @@
 """Warp kernels against slow torch references on the same inputs."""
+import platform
+
 import pytest
 import torch
 
+from nerfbake.kernels import parallel_map
 from nerfbake.kernels.hashgrid import hash_encode, hash_encode_reference
 from nerfbake.kernels.march import march_rays
 from nerfbake.render.packed import packed_composite, packed_median_depth, packed_weights
 from nerfbake.render.quadrature import composite, weights_from_density
+from nerfbake.train.loop import DataParallel
 from tests.helpers import devices
 
 
@@ -154,3 +158,15 @@ def test_packed_distortion_loss_equals_the_dense_form():
     ray_idx = torch.arange(5).repeat_interleave(8)
     packed = packed_distortion_loss(s[:, :-1].reshape(-1), s[:, 1:].reshape(-1), w.reshape(-1), ray_idx, 5)
     torch.testing.assert_close(packed, distortion_loss(s, w))
+
+
+@pytest.mark.skipif(platform.machine().lower() not in ("x86_64", "amd64"), reason="flush-to-zero as tested is x86's")
+def test_trainers_and_the_kernel_pool_round_subnormal_floats_to_zero():
+    """A trainer's process, and every kernel pool thread, computes with subnormals flushed (``flush_denormals``):
+    Adam's decaying moments went subnormal mid-distillation and made its dense step ~6× slower."""
+    def tiny(_=None):
+        return (torch.full((64,), 1e-39) * 1.0).abs().max().item()
+
+    DataParallel()  # what every trainer builds first
+    assert tiny() == 0.0
+    assert parallel_map(tiny, range(4)) == [0.0] * 4

@@ -12,6 +12,8 @@ import os
 import sys
 from concurrent.futures import ThreadPoolExecutor
 
+import torch
+
 
 @functools.lru_cache(maxsize=1)
 def warp():
@@ -56,9 +58,22 @@ def device_of(tensor) -> str:
     return "cpu" if tensor.device.type == "cpu" else f"cuda:{tensor.device.index or 0}"
 
 
+def flush_denormals() -> None:
+    """Round subnormal floats to zero on this CPU thread and on the threads it starts later.
+
+    Adam's moments of the grid cells a distillation no longer reaches decay by β every step and are subnormal
+    after ~800 steps (8 % of a lego student's sparse-grid moments by step 2300); x86 arithmetic on subnormals is
+    ~20× slower, so the dense Adam step over the student's 160 M grid values grew from 0.13 s to 0.8 s and the
+    distillation from 8k to 3.6k rays/s (``benchmarks/subnormal_floats.py``). Values that small change no result.
+    The mode is per thread and a new thread copies its creator's: torch's worker threads keep the mode they were
+    started with, so this must run before the process's first parallel op (trainers do it as they start: see
+    ``DataParallel``); the kernel pool sets it in each of its workers."""
+    torch.set_flush_denormal(True)
+
+
 @functools.lru_cache(maxsize=1)
 def _pool() -> ThreadPoolExecutor:
-    return ThreadPoolExecutor(max_workers=cpu_threads())
+    return ThreadPoolExecutor(max_workers=cpu_threads(), initializer=flush_denormals)
 
 
 def cpu_threads() -> int:

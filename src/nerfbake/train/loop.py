@@ -23,6 +23,7 @@ import torch.distributed as dist
 
 from nerfbake import atomic
 from nerfbake.errors import RunFolderError
+from nerfbake.kernels import flush_denormals
 from nerfbake.progress import console, progress_bar
 
 
@@ -118,6 +119,7 @@ class DataParallel:
     """Rank, world size and device (:func:`default_device`) under ``torchrun``; one process otherwise."""
 
     def __init__(self):
+        flush_denormals()  # a trainer builds this first, before its first parallel op starts torch's threads
         self.world = int(os.environ.get("WORLD_SIZE", "1"))
         self.rank = int(os.environ.get("RANK", "0"))
         self.device = default_device()
@@ -297,14 +299,6 @@ def finish_run(dp: "DataParallel", ckpt_path: Path, state_fn, config_path: Path,
         console.print(f"stopped at step {step}; checkpoint saved — continue with --resume")
 
 
-def flush_denormals() -> None:
-    """Round subnormal floats to zero on the CPU, for the rest of the process. Adam's moments of grid cells that no
-    longer get gradients decay by β each step and reach the subnormal range after ~800 steps; x86 arithmetic on
-    subnormals is ~20× slower, so a dense Adam step over a SMERF student's 160 M grid values grew from a third of a
-    step to most of it as training went on (lego distillation: 8k → 3.4k rays/s). Values that small change nothing."""
-    torch.set_flush_denormal(True)
-
-
 def run_steps(out: Path, dp: "DataParallel", desc: str, total: int, start: int, seed: int, step_fn, state_fn,
               checkpoint: Path, checkpoint_every: int, validate=None, val_every: int = 0, tensorboard: bool = False,
               stop_at: int | None = None, summary=None) -> int:
@@ -316,7 +310,6 @@ def run_steps(out: Path, dp: "DataParallel", desc: str, total: int, start: int, 
     ``metrics.jsonl``). Every 25 steps the record is logged with the step, the rays/s and the time; every 250 the
     main rank prints ``summary(record)``. Every ``val_every`` steps ``validate(step)`` returns (PSNR, extra record
     fields, a line to print); every ``checkpoint_every`` the state ``state_fn(step)`` is saved."""
-    flush_denormals()
     rate = RateMeter()
     step = start
     with Interrupt() as interrupt, progress_bar(desc, total, unit="step") as advance:
