@@ -6,12 +6,22 @@ import tempfile
 from pathlib import Path
 
 import pytest
+import torch
 
 SHARED = Path(os.environ.get("NERFBAKE_SHARED", Path(__file__).resolve().parents[2] / "shared"))
 DATA = SHARED / "data"
 
 # Keep the downscale cache of test runs out of the user's home.
 os.environ.setdefault("NERFBAKE_CACHE", tempfile.mkdtemp(prefix="nerfbake-test-cache-"))
+
+
+@pytest.fixture(autouse=True)
+def ieee_subnormals_after_each_test():
+    """A trainer flushes subnormal floats to zero for the rest of its process (``kernels.flush_denormals``), and a
+    test process runs many trainers; hypothesis refuses to draw floats while the main thread flushes them. Each
+    test starts with IEEE subnormals on the main thread, as a fresh process does."""
+    yield
+    torch.set_flush_denormal(False)
 
 
 def shared_data(name: str) -> Path:

@@ -67,7 +67,7 @@ def flush_denormals() -> None:
     distillation from 8k to 3.6k rays/s (``benchmarks/subnormal_floats.py``). Values that small change no result.
     The mode is per thread and a new thread copies its creator's: torch's worker threads keep the mode they were
     started with, so this must run before the process's first parallel op (trainers do it as they start: see
-    ``DataParallel``); the kernel pool sets it in each of its workers."""
+    ``DataParallel``); the kernel pool sets it in each of its workers. It stays on for the rest of the process."""
     torch.set_flush_denormal(True)
 
 
