@@ -253,28 +253,27 @@ class App {
     const lerp = (a, b, t) => a.map((v, i) => v + (b[i] - v) * t);
     const up = this.controls.up;
     const last = path[path.length - 1];
-    const legs = [];
+    const cameras = [];  // every frame's camera along the path
     for (let i = 0; i < path.length; i++) {
       for (let k = 0; k <= (i + 1 < path.length ? between : 0); k++) {
         const t = k / (between + 1);
         const a = path[i], b = path[Math.min(i + 1, path.length - 1)];
-        legs.push(k === 0 ? a : {...a, position: lerp(a.position, b.position, t),
-                                  rotation: lookRotation(lerp(viewForward(a.rotation), viewForward(b.rotation), t), up)});
+        cameras.push(k === 0 ? a : {...a, position: lerp(a.position, b.position, t),
+                                     rotation: lookRotation(lerp(viewForward(a.rotation), viewForward(b.rotation), t), up)});
       }
     }
     // A user who stops at the path's end sees its own submodel once it has streamed in: the walk holds the last
     // camera until then (at most `holdMs`), so how long the arrival took is measured rather than cut off.
     const holdMs = 20000;
-    let holdStart = null, held = 0;
+    let holdStart = null;
     for (let n = 0; ; n++) {
-      const holding = n >= legs.length;
+      const holding = n >= cameras.length;
       if (holding) {
         if (this.scene.settledAt(last.position)) break;
         holdStart = holdStart ?? performance.now();
         if (performance.now() - holdStart > holdMs) break;
-        held++;
       }
-      const cam = holding ? last : legs[n];
+      const cam = holding ? last : cameras[n];
       this.scene.update(cam.position);
       const t0 = performance.now();
       const drawn = this.scene.draw(cam, target, width, height);
@@ -291,7 +290,8 @@ class App {
     requestAnimationFrame((t) => this.loop(t));
     const times = frames.map((f) => f.ms);
     return {
-      width, height, frames: frames.length, path_cameras: path.length, between, held_frames: held, settled,
+      width, height, frames: frames.length, path_cameras: path.length, between,
+      held_frames: frames.filter((f) => f.held).length, settled,
       p50_ms: percentile(times, 50), p95_ms: percentile(times, 95), max_ms: Math.max(...times),
       frames_while_loading: frames.filter((f) => f.loading !== null).length,
       blank_frames: frames.filter((f) => !f.drawn || f.mean < 1.0).length,
