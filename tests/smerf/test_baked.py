@@ -124,3 +124,27 @@ def test_format_rules_accept_the_official_export_and_name_each_violation(tiny_as
     assert "triplane_voxel_size = 0.01, expected 0.015625" in problems
     assert "distance_grid_16_000.raw.gz: missing" in problems
     assert "points outside the 288x9x9 atlas" in problems
+
+
+def test_our_distance_grids_are_the_authors_and_an_overshooting_one_is_named(tiny_assets, tmp_path):
+    """The byte is the Chebyshev distance to an occupied cell minus 1: the viewer jumps that many whole cells from
+    anywhere inside a cell. Storing the distance itself (nerfbake before session 35) let rays jump through thin
+    surfaces; the official export's grids are the reference."""
+    import torch
+
+    from nerfbake.smerf.bake import distance_grid
+    from nerfbake.smerf.validate import asset_problems
+
+    sm = load_submodel(tiny_assets / "sm_000")
+    for f, occupancy in sm.occupancy.items():
+        assert (distance_grid(torch.from_numpy(occupancy > 0)) == sm.distance[f]).all(), f"factor {f}"
+    assert asset_problems(tiny_assets) == []
+    broken = tmp_path / "scene"
+    shutil.copytree(tiny_assets, broken)
+    folder = broken / "sm_000"
+    read = lambda name: np.frombuffer(gzip.decompress((folder / name).read_bytes()), np.uint8)  # noqa: E731
+    occupied, official = read("occupancy_grid_8_000.raw.gz") > 0, read("distance_grid_8_000.raw.gz")
+    target = folder / "distance_grid_8_000.raw.gz"
+    target.chmod(0o644)
+    target.write_bytes(gzip.compress(np.where(occupied, 0, official + 1).astype(np.uint8).tobytes()))  # the old rule
+    assert "distance_grid_8 lets the viewer jump into occupied cells" in "\n".join(asset_problems(broken))

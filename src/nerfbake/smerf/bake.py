@@ -110,17 +110,21 @@ def pack_bits(fine: torch.Tensor) -> np.ndarray:
 
 
 def distance_grid(occupied: torch.Tensor) -> np.ndarray:
-    """Dilations (3x3x3) needed before each cell becomes occupied: 0 on occupied cells, capped at min(255, n)."""
+    """Per cell, how many whole cells a ray may jump from anywhere inside it without entering an occupied one: the
+    Chebyshev distance to the nearest occupied cell minus 1 (0 on occupied cells and on their 26 neighbours),
+    capped at min(255, n) - 1. The viewer jumps ``byte`` cells at once, so a cell next to an occupied one must hold
+    0: a point on its far side may be a hair from the occupied cell (the authors' grids hold exactly this; storing
+    the distance itself let rays jump through thin surfaces, 0.7 dB of lego's bake loss)."""
     n = occupied.shape[0]
-    cap = min(255, n)
+    cap = min(255, n) - 1
     dist = torch.full(occupied.shape, cap, dtype=torch.int32)
     cur = occupied.clone()
     dist[cur] = 0
-    for it in range(1, cap):
+    for it in range(1, cap + 1):
         if bool(cur.all()):
             break
         grown = F.max_pool3d(cur[None, None].float(), 3, stride=1, padding=1)[0, 0] > 0
-        dist[grown & ~cur] = it
+        dist[grown & ~cur] = it - 1
         cur = grown
     return dist.to(torch.uint8).numpy()
 

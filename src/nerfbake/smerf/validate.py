@@ -134,8 +134,11 @@ def submodel_problems(sm_dir: str | Path) -> list[str]:
             out.append(f"{sm_dir}: two blocks share one atlas slot")
     for f in OCCUPANCY_FACTORS:
         occ, dist = arrays.get(f"occupancy_grid_{f}_000.raw.gz"), arrays.get(f"distance_grid_{f}_000.raw.gz")
-        if occ is not None and dist is not None and occ.shape == dist.shape and ((occ > 0) & (dist > 0)).any():
-            out.append(f"{sm_dir}: distance_grid_{f} jumps over occupied cells of occupancy_grid_{f}")
+        whole = occ is not None and dist is not None and occ.shape == dist.shape and occ.shape[0] == occ.shape[1] ** 2
+        if whole and (near_occupied(occ) & (dist > 0)).any():
+            out.append(f"{sm_dir}: distance_grid_{f} lets the viewer jump into occupied cells of occupancy_grid_{f} "
+                       "(a cell that is occupied or touches one must hold 0: the byte is the Chebyshev distance "
+                       "minus 1); re-bake it")
 
     mlp_path = sm_dir / "deferred_mlp.json.gz"
     if p.get("export_store_deferred_mlp_separately"):
@@ -167,6 +170,19 @@ def submodel_problems(sm_dir: str | Path) -> list[str]:
     except (OSError, KeyError, TypeError, json.JSONDecodeError) as exc:
         out.append(f"{frames}: unreadable ({exc})")
     return out
+
+
+def near_occupied(grid: np.ndarray) -> np.ndarray:
+    """Cells of an (n*n, n, c) occupancy array (the last channel holds the value) that are occupied or touch an
+    occupied cell, in the array's own layout: where a distance grid must hold 0."""
+    n = grid.shape[1]
+    occ = np.pad(grid[..., -1].reshape(n, n, n) > 0, 1)
+    near = np.zeros((n, n, n), bool)
+    for a in range(3):
+        for b in range(3):
+            for c in range(3):
+                near |= occ[a:a + n, b:b + n, c:c + n]
+    return near.reshape(grid.shape[:-1])[..., None].repeat(grid.shape[-1], -1)
 
 
 def asset_problems(root: str | Path) -> list[str]:
