@@ -459,15 +459,16 @@ def to_warp_scene(sm, device: str):
     s.rd_min, s.rd_max = (float(v) for v in p["range_density"])
     s.scale = float(p["submodel_scale"])
     s.gating = 0 if p.get("feature_gating") is False else 1
-    s.occ_lo, s.occ_hi = (wp.vec3(*v) for v in occupied_box(sm.distance[8], 8.0 * s.triplane_voxel))
+    s.occ_lo, s.occ_hi = (wp.vec3(*v) for v in occupied_box(sm.occupancy[8], 8.0 * s.triplane_voxel))
     return s
 
 
-def occupied_box(distance8: np.ndarray, voxel: float) -> tuple[list[float], list[float]]:
-    """[lo, hi] in contracted coordinates around every factor-8 cell of ``distance8`` (n, n, n; [x, y, z]) whose
-    distance is 0 (occupied), each cell ``voxel`` wide from -2; an empty grid gives an empty box (lo > hi). The
-    viewer computes the same box at upload (smerf.js: occupiedBox)."""
-    cells = np.argwhere(np.asarray(distance8) == 0)
+def occupied_box(occupancy8: np.ndarray, voxel: float) -> tuple[list[float], list[float]]:
+    """[lo, hi] in contracted coordinates around every occupied factor-8 cell of the bit-packed ``occupancy8``
+    (n, n, n; [x, y, z]; a non-zero byte), each cell ``voxel`` wide from -2; an empty grid gives an empty box
+    (lo > hi). Not from the distance grid: its zeros include the occupied cells' neighbours. The viewer computes
+    the same box at upload (smerf.js: occupiedBox)."""
+    cells = np.argwhere(np.asarray(occupancy8) > 0)
     if len(cells) == 0:
         return [1.0, 1.0, 1.0], [-1.0, -1.0, -1.0]
     return ((-2.0 + cells.min(0) * voxel).tolist(), (-2.0 + (cells.max(0) + 1) * voxel).tolist())

@@ -331,7 +331,7 @@ class GpuSubmodel {
     const [planeA] = interleave([[concat(data.planes.density), 1], [concat(data.planes.rgb), 3]]);
     const [grid8] = interleave([[data.distance8, 1], [data.occupancy8, 1]], 2);
     const g8 = this.grid8;
-    this.occupied = occupiedBox(data.distance8, g8, 8 * p.triplane_voxel_size);
+    this.occupied = occupiedBox(data.occupancy8, g8, 8 * p.triplane_voxel_size);
     this.tex = {
       blockIndices: texture3D(gl, nb, nb, nb, 3, false, data.blockIndices),
       atlasA: texture3D(gl, aw, ah, ad, 4, true, atlasA),
@@ -346,12 +346,13 @@ class GpuSubmodel {
   dispose() { for (const t of Object.values(this.tex)) this.gl.deleteTexture(t); }
 }
 
-// [lo, hi] in contracted coordinates around every factor-8 cell whose distance is 0 (occupied), as
-// kernels/smerf_march.py: occupied_box computes it; an empty grid gives an empty box (lo > hi).
-function occupiedBox(distance8, n, voxel) {
+// [lo, hi] in contracted coordinates around every occupied factor-8 cell (a non-zero byte of the bit-packed
+// grid; the distance grid's zeros include their neighbours), as kernels/smerf_march.py: occupied_box computes
+// it; an empty grid gives an empty box (lo > hi).
+function occupiedBox(occupancy8, n, voxel) {
   const lo = [n, n, n], hi = [-1, -1, -1];
-  for (let f = 0; f < distance8.length; f++) {
-    if (distance8[f] !== 0) continue;
+  for (let f = 0; f < occupancy8.length; f++) {
+    if (occupancy8[f] === 0) continue;
     const c = [f % n, Math.floor(f / n) % n, Math.floor(f / (n * n))];  // texel (x, y, z) as the 3D texture holds it
     for (let a = 0; a < 3; a++) { lo[a] = Math.min(lo[a], c[a]); hi[a] = Math.max(hi[a], c[a] + 1); }
   }
