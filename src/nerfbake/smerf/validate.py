@@ -134,8 +134,11 @@ def submodel_problems(sm_dir: str | Path) -> list[str]:
             out.append(f"{sm_dir}: two blocks share one atlas slot")
     for f in OCCUPANCY_FACTORS:
         occ, dist = arrays.get(f"occupancy_grid_{f}_000.raw.gz"), arrays.get(f"distance_grid_{f}_000.raw.gz")
-        whole = occ is not None and dist is not None and occ.shape == dist.shape and occ.shape[0] == occ.shape[1] ** 2
-        if whole and (near_occupied(occ) & (dist > 0)).any():
+        if occ is None or dist is None or occ.shape != dist.shape or occ.shape[0] != occ.shape[1] ** 2:
+            continue  # missing, misshapen (named above) or sliced into files
+        n = occ.shape[1]
+        jumps = (dist.reshape(n, n, n, -1) > 0).any(-1)
+        if (near_occupied(occ) & jumps).any():
             out.append(f"{sm_dir}: distance_grid_{f} lets the viewer jump into occupied cells of occupancy_grid_{f} "
                        "(a cell that is occupied or touches one must hold 0: the byte is the Chebyshev distance "
                        "minus 1); re-bake it")
@@ -173,8 +176,8 @@ def submodel_problems(sm_dir: str | Path) -> list[str]:
 
 
 def near_occupied(grid: np.ndarray) -> np.ndarray:
-    """Cells of an (n*n, n, c) occupancy array (the last channel holds the value) that are occupied or touch an
-    occupied cell, in the array's own layout: where a distance grid must hold 0."""
+    """(n, n, n) cells of an (n*n, n, c) occupancy array (the last channel holds the value) that are occupied or
+    touch an occupied cell: where a distance grid must hold 0."""
     n = grid.shape[1]
     occ = np.pad(grid[..., -1].reshape(n, n, n) > 0, 1)
     near = np.zeros((n, n, n), bool)
@@ -182,7 +185,7 @@ def near_occupied(grid: np.ndarray) -> np.ndarray:
         for b in range(3):
             for c in range(3):
                 near |= occ[a:a + n, b:b + n, c:c + n]
-    return near.reshape(grid.shape[:-1])[..., None].repeat(grid.shape[-1], -1)
+    return near
 
 
 def asset_problems(root: str | Path) -> list[str]:
