@@ -264,12 +264,15 @@ class App {
     }
     // A user who stops at the path's end sees its own submodel once it has streamed in: the walk holds the last
     // camera until then (at most `holdMs`), so how long the arrival took is measured rather than cut off.
+    // Settled is judged on what the last frame drew (its state is read right after drawing it): a submodel that
+    // swaps in while the page waits between frames has not been seen yet, so one more frame draws it.
     const holdMs = 20000;
     let holdStart = null;
+    let drewSettled = false;
     for (let n = 0; ; n++) {
       const holding = n >= cameras.length;
       if (holding) {
-        if (this.scene.settledAt(last.position)) break;
+        if (drewSettled) break;
         holdStart = holdStart ?? performance.now();
         if (performance.now() - holdStart > holdMs) break;
       }
@@ -280,11 +283,12 @@ class App {
       finish(gl);
       const ms = performance.now() - t0;
       const s = this.scene.state();
+      drewSettled = n >= cameras.length - 1 && this.scene.settledAt(last.position);
       frames.push({ms, drawn: !!drawn, mean: meanBrightness(target.read()), active: s.active ?? null, held: holding,
                    loading: s.loading ?? null, resident: s.resident || [], host_cache: (s.hostCache || []).length});
       await new Promise(requestAnimationFrame);  // let fetches and uploads go on between frames, as on screen
     }
-    const settled = this.scene.settledAt(last.position);
+    const settled = drewSettled;
     target.dispose();
     this.running = true;
     requestAnimationFrame((t) => this.loop(t));
