@@ -130,14 +130,11 @@ def test_our_distance_grids_are_the_authors_and_an_overshooting_one_is_named(tin
     """The byte is the Chebyshev distance to an occupied cell minus 1: the viewer jumps that many whole cells from
     anywhere inside a cell. Storing the distance itself (nerfbake before session 35) let rays jump through thin
     surfaces; the official export's grids are the reference."""
-    import torch
-
-    from nerfbake.smerf.bake import distance_grid
-    from nerfbake.smerf.validate import asset_problems
+    from nerfbake.smerf.validate import asset_problems, distance_grid
 
     sm = load_submodel(tiny_assets / "sm_000")
     for f, occupancy in sm.occupancy.items():
-        assert (distance_grid(torch.from_numpy(occupancy > 0)) == sm.distance[f]).all(), f"factor {f}"
+        assert (distance_grid(occupancy > 0) == sm.distance[f]).all(), f"factor {f}"
     assert asset_problems(tiny_assets) == []
     broken = tmp_path / "scene"
     shutil.copytree(tiny_assets, broken)
@@ -148,3 +145,10 @@ def test_our_distance_grids_are_the_authors_and_an_overshooting_one_is_named(tin
     target.chmod(0o644)
     target.write_bytes(gzip.compress(np.where(occupied, 0, official + 1).astype(np.uint8).tobytes()))  # the old rule
     assert "distance_grid_8 lets the viewer jump into occupied cells" in "\n".join(asset_problems(broken))
+    far = np.flatnonzero(official > 0)[0]  # one byte too large away from any surface is named too
+    overshoot = official.copy()
+    overshoot[far] += 1
+    target.write_bytes(gzip.compress(overshoot.tobytes()))
+    assert "distance_grid_8 lets the viewer jump into occupied cells" in "\n".join(asset_problems(broken))
+    target.write_bytes(gzip.compress(np.minimum(official, 1).tobytes()))  # smaller jumps are slower, not wrong
+    assert asset_problems(broken) == []

@@ -14,13 +14,13 @@ import torch
 from nerfbake.cli import main
 from nerfbake.kernels.merf_grid import merf_lookup, merf_lookup_reference
 from nerfbake.smerf.assets import AssetError, SceneAssets, load_submodel
-from nerfbake.smerf.bake import (BakeError, atlas_shape, bake_student, distance_grid, max_pool, pack_bits,
+from nerfbake.smerf.bake import (BakeError, atlas_shape, bake_student, max_pool, pack_bits,
                                  plane_texels_in_use, quantize_channels)
 from nerfbake.smerf.distill import distill
 from nerfbake.smerf.run import load_student
 from nerfbake.smerf.partition import PartitionError
 from nerfbake.smerf.student import StudentConfig
-from nerfbake.smerf.validate import asset_problems
+from nerfbake.smerf.validate import asset_problems, distance_grid
 from tests.helpers import devices, one_and_two_processes, run_nerfbake, tiny_distill_config
 
 
@@ -74,7 +74,7 @@ def test_occupancy_packing_and_distance_grid_follow_the_viewer_rules():
     fine[2, 3, 2] = True  # cell (1,1,1), sub-cell (0, 1, 0) -> bit 4
     packed = pack_bits(fine)
     assert packed[0, 0, 0] == 32 and packed[1, 1, 1] == 4 and packed.sum() == 36
-    occ = torch.zeros(6, 6, 6, dtype=torch.bool)
+    occ = np.zeros((6, 6, 6), bool)
     occ[0, 0, 0] = True
     d = distance_grid(occ)
     assert d[0, 0, 0] == 0 and d[1, 1, 1] == 0 and d[2, 1, 0] == 1 and d[3, 0, 0] == 2 and d[5, 5, 5] == 4

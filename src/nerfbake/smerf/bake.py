@@ -41,7 +41,7 @@ from nerfbake.smerf.baked_render import ViewerCamera
 from nerfbake.smerf.deferred_mlp import deferred_mlp_text
 from nerfbake.smerf.distill import teacher_background
 from nerfbake.smerf.run import load_student
-from nerfbake.smerf.validate import ATLAS_BLOCK, MAX_ATLAS_SIDE, OCCUPANCY_FACTORS
+from nerfbake.smerf.validate import ATLAS_BLOCK, MAX_ATLAS_SIDE, OCCUPANCY_FACTORS, distance_grid
 from nerfbake.teacher.protocol import Teacher
 from nerfbake.teacher.run import load_teacher
 from nerfbake.train.loop import DataParallel
@@ -107,26 +107,6 @@ def pack_bits(fine: torch.Tensor) -> np.ndarray:
             for c in range(2):
                 out += f[:, a, :, b, :, c] << (c + 2 * b + 4 * a)
     return out.to(torch.uint8).numpy()
-
-
-def distance_grid(occupied: torch.Tensor) -> np.ndarray:
-    """Per cell, how many whole cells a ray may jump from anywhere inside it without entering an occupied one: the
-    Chebyshev distance to the nearest occupied cell minus 1 (0 on occupied cells and on their 26 neighbours),
-    capped at min(255, n) - 1. The viewer jumps ``byte`` cells at once, so a cell next to an occupied one must hold
-    0: a point on its far side may be a hair from the occupied cell (the authors' grids hold exactly this; storing
-    the distance itself let rays jump through thin surfaces, 0.7 dB of lego's bake loss)."""
-    n = occupied.shape[0]
-    cap = min(255, n) - 1
-    dist = torch.full(occupied.shape, cap, dtype=torch.int32)
-    cur = occupied.clone()
-    dist[cur] = 0
-    for it in range(1, cap + 1):
-        if bool(cur.all()):
-            break
-        grown = F.max_pool3d(cur[None, None].float(), 3, stride=1, padding=1)[0, 0] > 0
-        dist[grown & ~cur] = it - 1
-        cur = grown
-    return dist.to(torch.uint8).numpy()
 
 
 def plane_texels_in_use(occupied4: torch.Tensor, t: int) -> np.ndarray:
@@ -286,7 +266,7 @@ def write_submodel(folder: Path, student, params_idx: int, alive: torch.Tensor, 
         n = t // f
         sliced = n > 256
         w.grid(f"occupancy_grid_{f}", pack_bits(levels[f // 2]), sliced)
-        w.grid(f"distance_grid_{f}", distance_grid(levels[f]), sliced)
+        w.grid(f"distance_grid_{f}", distance_grid(levels[f].cpu().numpy()), sliced)
     # sparse grid: 8^3 blocks holding an alive voxel
     blocks = max_pool(alive, BLOCK * t // s)
     sparse = student.sparse.detach().cpu().view(-1, s, s, s, 8)[params_idx]

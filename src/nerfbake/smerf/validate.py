@@ -137,11 +137,10 @@ def submodel_problems(sm_dir: str | Path) -> list[str]:
         if occ is None or dist is None or occ.shape != dist.shape or occ.shape[0] != occ.shape[1] ** 2:
             continue  # missing, misshapen (named above) or sliced into files
         n = occ.shape[1]
-        jumps = (dist.reshape(n, n, n, -1) > 0).any(-1)
-        if (near_occupied(occ) & jumps).any():
+        allowed = distance_grid(occ[..., -1].reshape(n, n, n) > 0)[..., None]
+        if (dist.reshape(n, n, n, -1) > allowed).any():
             out.append(f"{sm_dir}: distance_grid_{f} lets the viewer jump into occupied cells of occupancy_grid_{f} "
-                       "(a cell that is occupied or touches one must hold 0: the byte is the Chebyshev distance "
-                       "minus 1); re-bake it")
+                       "(each byte may be at most the Chebyshev distance to an occupied cell minus 1); re-bake it")
 
     mlp_path = sm_dir / "deferred_mlp.json.gz"
     if p.get("export_store_deferred_mlp_separately"):
@@ -175,17 +174,32 @@ def submodel_problems(sm_dir: str | Path) -> list[str]:
     return out
 
 
-def near_occupied(grid: np.ndarray) -> np.ndarray:
-    """(n, n, n) cells of an (n*n, n, c) occupancy array (the last channel holds the value) that are occupied or
-    touch an occupied cell: where a distance grid must hold 0."""
-    n = grid.shape[1]
-    occ = np.pad(grid[..., -1].reshape(n, n, n) > 0, 1)
-    near = np.zeros((n, n, n), bool)
-    for a in range(3):
-        for b in range(3):
-            for c in range(3):
-                near |= occ[a:a + n, b:b + n, c:c + n]
-    return near
+def distance_grid(occupied: np.ndarray) -> np.ndarray:
+    """Per cell of an (n, n, n) occupancy, how many whole cells a ray may jump from anywhere inside it without
+    entering an occupied one: the Chebyshev distance to the nearest occupied cell minus 1 (0 on occupied cells and
+    their 26 neighbours), capped at min(255, n) - 1. The viewer jumps ``byte`` cells at once, so a cell next to an
+    occupied one must hold 0: a point on its far side may be a hair from the occupied cell (the authors' grids hold
+    exactly this; storing the distance itself let rays jump through thin surfaces, 0.7 dB of lego's bake loss).
+    Grown one ring at a time by a separable 3-box dilation; numpy, so the validator can recompute it."""
+    occ = np.asarray(occupied, bool)
+    cap = min(255, occ.shape[0]) - 1
+    dist = np.full(occ.shape, cap, np.uint8)
+    dist[occ] = 0
+    cur = occ
+    for ring in range(1, cap + 1):
+        if cur.all():
+            break
+        grown = cur.copy()
+        for axis in range(3):
+            lower = tuple(slice(0, -1) if a == axis else slice(None) for a in range(3))
+            upper = tuple(slice(1, None) if a == axis else slice(None) for a in range(3))
+            step = grown.copy()
+            step[lower] |= grown[upper]
+            step[upper] |= grown[lower]
+            grown = step
+        dist[grown & ~cur] = ring - 1
+        cur = grown
+    return dist
 
 
 def asset_problems(root: str | Path) -> list[str]:
