@@ -152,3 +152,8 @@ def test_our_distance_grids_are_the_authors_and_an_overshooting_one_is_named(tin
     assert "distance_grid_8 lets the viewer jump into occupied cells" in "\n".join(asset_problems(broken))
     target.write_bytes(gzip.compress(np.minimum(official, 1).tobytes()))  # smaller jumps are slower, not wrong
     assert asset_problems(broken) == []
+    empty = folder / "occupancy_grid_8_000.raw.gz"  # nothing occupied: no byte can jump into anything
+    empty.chmod(0o644)
+    empty.write_bytes(gzip.compress(np.zeros_like(official).tobytes()))
+    target.write_bytes(gzip.compress(np.full_like(official, 255).tobytes()))
+    assert not any("distance_grid_8" in problem for problem in asset_problems(broken))

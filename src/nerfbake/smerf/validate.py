@@ -137,8 +137,10 @@ def submodel_problems(sm_dir: str | Path) -> list[str]:
         if occ is None or dist is None or occ.shape != dist.shape or occ.shape[0] != occ.shape[1] ** 2:
             continue  # missing, misshapen (named above) or sliced into files
         n = occ.shape[1]
-        allowed = distance_grid(occ[..., -1].reshape(n, n, n) > 0)[..., None]
-        if (dist.reshape(n, n, n, -1) > allowed).any():
+        occupied = occ[..., -1].reshape(n, n, n) > 0
+        if not occupied.any():
+            continue  # nothing to jump into: any byte is safe (the export caps these cells at min(255, n), not n - 1)
+        if (dist.reshape(n, n, n, -1) > distance_grid(occupied)[..., None]).any():
             out.append(f"{sm_dir}: distance_grid_{f} lets the viewer jump into occupied cells of occupancy_grid_{f} "
                        "(each byte may be at most the Chebyshev distance to an occupied cell minus 1); re-bake it")
 
