@@ -428,11 +428,11 @@ def demo_config(out: str, data: str, eval_views: int = 6) -> PipelineConfig:
     viewer's steps through the scene and adds ~40 s; the demo keeps 256.
 
     One deferred MLP instead of the 5^3 lattice (the K = 1 default, :func:`~nerfbake.smerf.student.mlp_lattice_size`)
-    and the core grown to fill the objects (``core_fill_quantile`` 0.98, factor 4.0) took the baked scene from
-    30.91 / 30.61 dB (seeds 0 / 1, P = 5, factor 2.5) to 32.73 / 32.47, within 1.0 dB of the 33.50 dB teacher (P = 1
-    alone: 32.11; the fill alone: 31.44 / 30.85). The fill costs the viewer finer steps through the object (the
-    viewer-exact renderer 31 -> 35-41 ms a frame)."""
-    distill = replace(distill_preset("cpu-small"), batch_patches=256, empty_space_points=8192, core_fill_quantile=0.98)
+    and the core grown to fill the objects (``core_fill_quantile`` 0.98, now the cpu-small preset's; factor 4.0) took
+    the baked scene from 30.91 / 30.61 dB (seeds 0 / 1, P = 5, factor 2.5) to 32.73 / 32.47, within 1.0 dB of the
+    33.50 dB teacher (P = 1 alone: 32.11; the fill alone: 31.44 / 30.85). The fill costs the viewer finer steps
+    through the object (the viewer-exact renderer 31 -> 35-41 ms a frame)."""
+    distill = replace(distill_preset("cpu-small"), batch_patches=256, empty_space_points=8192)
     return PipelineConfig(data=data, out=out, preset="cpu-small", eval_views=eval_views, teacher_steps=1000,
                           octree_grid=128, octree_epochs=2, octree_lr=1e5, distill_steps=1200, student_sparse=64,
                           student_triplane=256, bake_stride=2, distill=distill)
