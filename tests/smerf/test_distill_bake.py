@@ -120,41 +120,6 @@ def test_distillation_learns_and_resumes_to_the_same_student(tiny_teacher, tiny_
     assert json.loads((half / "config.json").read_text())["downscale"] == 2.0
 
 
-def test_teacher_replay_renders_every_reuse_th_step_and_replays_recent_renders():
-    from nerfbake.smerf.distill import REPLAY_BATCHES, TeacherReplay
-    from nerfbake.train.loop import step_generator
-
-    made = []
-
-    def render(gen):
-        made.append(float(torch.rand(1, generator=gen)))
-        return {"id": len(made) - 1}
-
-    replay = TeacherReplay(4, lambda q: step_generator(0, q))
-    picked = [replay.batch(step, step_generator(0, step), render)["id"] for step in range(100)]
-    assert replay.renders == len(made) == 25  # steps 0, 4, ..., 96
-    assert [picked[q] for q in range(0, 100, 4)] == list(range(25))  # a render step trains on its fresh batch
-    for step in range(1, 100):  # the steps between replay one of the last REPLAY_BATCHES renders
-        assert step // 4 - REPLAY_BATCHES < picked[step] <= step // 4
-    assert len(set(picked[64:])) > 4  # drawn at random, not the latest every time
-    every = TeacherReplay(1, lambda q: step_generator(0, q))
-    assert [every.batch(s, step_generator(0, s), render)["id"] for s in range(3)] == [25, 26, 27]
-    with pytest.raises(ValueError, match="teacher_reuse is 0"):
-        TeacherReplay(0, None)
-
-
-def test_distillation_with_teacher_replay_resumes_to_the_same_student(tiny_teacher, tmp_path):
-    cfg = replace(tiny_distill_config(steps=30), teacher_reuse=3)
-    a = distill(tiny_teacher, tmp_path / "a", cfg)
-    distill(tiny_teacher, tmp_path / "b", cfg, stop_at=20)  # 20 is between render steps 18 and 21
-    distill(tiny_teacher, tmp_path / "b", cfg, resume=True)
-    sa, sb = load_student(a)[0], load_student(tmp_path / "b")[0]
-    for name, pa in sa.state_dict().items():  # the resumed run re-rendered the batches the first one held
-        assert torch.equal(pa, sb.state_dict()[name]), name
-    plain = load_student(distill(tiny_teacher, tmp_path / "c", tiny_distill_config(steps=30)))[0]
-    assert not torch.equal(plain.sparse, sa.sparse)  # replay trained on other batches than a fresh render a step
-
-
 def median_alive(sm) -> torch.Tensor:
     """The factor-4 occupancy of a baked submodel, unpacked from the factor-8 bytes (2x2x2 bits per byte)."""
     occ = torch.from_numpy(sm.occupancy[8].astype(np.int64))

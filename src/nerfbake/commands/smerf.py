@@ -16,7 +16,7 @@ class Distill(Command):
     preset: str = option("cpu-small", choices=PRESETS)
     config: str | None = option(None, "a student's config.json (or a bare distillation config) instead of --preset")
     overrides: dict = config_overrides("nerfbake.smerf.run:DistillConfig", "k", "steps", "steps_per_submodel",
-                                       "batch_patches", "teacher_reuse", "downscale")
+                                       "batch_patches", "downscale")
     resume: bool = option(False, "continue from OUT's checkpoint")
     tensorboard: bool = option(False, "also write TensorBoard scalars to OUT/tensorboard")
 

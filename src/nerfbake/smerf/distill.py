@@ -20,12 +20,6 @@ after its surface, so nothing in training shows what such a half-transparent sur
 sampling (the viewer's dense march, other intervals) then shows the room behind through the foreground (bonsai:
 opacity 0.37 where the teacher's is 1.0 on the table cloth).
 
-Where the teacher's render is most of a step (an unbounded teacher's proposal sampling on a CPU: about two thirds
-of a bonsai step), ``teacher_reuse`` r > 1 renders a fresh batch only every r-th step and trains the steps between
-on batches drawn at random from the last :data:`REPLAY_BATCHES` renders: each render serves r student steps on
-average, so more student steps fit in the same time (the student's fit to the teacher, not the supply of targets,
-is what limits a real capture).
-
 A student folder holds ``config.json`` (this config, the partition, the teacher it came from), ``student.pt``
 (checkpoint) and ``metrics.jsonl``; ``--resume`` continues it, Ctrl-C saves it.
 """
@@ -55,7 +49,7 @@ from nerfbake.teacher.clearance import CameraClearance
 from nerfbake.teacher.protocol import Teacher
 from nerfbake.teacher.run import load_teacher
 from nerfbake.train.loop import (DataParallel, finish_run, git_revision, load_checkpoint, log_linear_lr, run_complete,
-                                 run_steps, step_generator, to_jsonable, write_json_atomic)
+                                 run_steps, to_jsonable, write_json_atomic)
 
 
 CLEARANCE_SAMPLES = 2  # points per training ray in front of the teacher's near bound (clearance_loss)
@@ -176,39 +170,6 @@ def random_neighbour(params_idx: np.ndarray, partition: Partition, gen: torch.Ge
     return np.where(counts > 0, out, -1)
 
 
-REPLAY_BATCHES = 16  # teacher renders kept for replay (bonsai: ~5 MB each at 4608 rays of 48 samples)
-
-
-class TeacherReplay:
-    """The batch each distillation step trains on: a fresh teacher render every ``reuse``-th step, otherwise one of
-    the last :data:`REPLAY_BATCHES` renders drawn at random with the step's generator (so every rank replays the
-    same batch). ``reuse`` 1 renders every step. A resumed run first re-renders the batches the interrupted one
-    held (each render step's batch comes from that step's own generator, ``generator(step)``), so it goes on
-    exactly as the uninterrupted run."""
-
-    def __init__(self, reuse: int, generator):
-        if reuse < 1:
-            raise ValueError(f"teacher_reuse is {reuse}; it counts the steps one teacher render serves (1 or more)")
-        self.reuse, self.generator, self.kept, self.renders = reuse, generator, None, 0
-
-    def _render(self, gen, render) -> dict:
-        self.renders += 1
-        return render(gen)
-
-    def batch(self, step: int, gen: torch.Generator, render) -> dict:
-        """The batch of step ``step`` (its generator ``gen``); ``render(generator)`` makes a fresh one."""
-        if self.reuse == 1:
-            return self._render(gen, render)
-        if self.kept is None:  # the renders an uninterrupted run would hold before this step
-            earlier = range(0, step, self.reuse)[-REPLAY_BATCHES:]
-            self.kept = [self._render(self.generator(q), render) for q in earlier]
-        if step % self.reuse == 0:
-            fresh = self._render(gen, render)
-            self.kept = (self.kept + [fresh])[-REPLAY_BATCHES:]
-            return fresh
-        return self.kept[int(torch.randint(len(self.kept), (1,), generator=gen))]
-
-
 def teacher_background(ds) -> tuple[float, float, float]:
     """The background colour the teacher was trained against (white when the dataset has none)."""
     return tuple(ds.background or (1.0, 1.0, 1.0))
@@ -289,10 +250,10 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
     n_rays = cfg.batch_patches * 9
     t_start = time.time()
 
-    @torch.no_grad()
-    def teacher_batch(gen) -> dict:
-        """This rank's share of a fresh batch: jittered patch rays, their submodels (and a neighbour each when
-        K > 1), and the teacher's render of them."""
+    def one_step(step, gen):
+        lr_g = log_linear_lr(step, cfg.steps, cfg.lr_grid, cfg.lr_grid_final, cfg.warmup_steps)
+        lr_m = log_linear_lr(step, cfg.steps, cfg.lr_mlp, cfg.lr_mlp_final, cfg.warmup_steps)
+        opt.param_groups[0]["lr"], opt.param_groups[1]["lr"] = lr_g, lr_m
         drawn = store.sample_rays(n_rays, gen, patch=3)
         rays = jitter_patches(drawn, cfg, partition, gen)
         home = partition.assign(rays["origins"].double().numpy())
@@ -302,24 +263,14 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
         mine = dp.shard(cfg.batch_patches)
         sl = slice(mine.start * 9, mine.stop * 9)
         o, d = rays["origins"][sl].to(dp.device), rays["directions"][sl].to(dp.device)
-        tout = teacher.render_rays(o, d, torch.tensor(bg, device=dp.device).expand(o.shape[0], 3),
-                                   noise=noise[sl].to(dp.device))
-        return {"o": o, "d": d, "cams": drawn["origins"][sl].to(dp.device),  # un-jittered: where the MLPs are read
-                "pidx": torch.as_tensor(params_idx[sl], device=dp.device),
-                "neighbour": None if neighbour is None else torch.as_tensor(neighbour[sl], device=dp.device),
-                "share": (sl.stop - sl.start) / n_rays, "rank_rows": sl,  # this rank's share of the global mean
-                "teacher": {k: tout[k] for k in ("rgb", "acc", "w", "t0", "t1", "ray_idx")}}
-
-    replay = TeacherReplay(cfg.teacher_reuse, lambda q: step_generator(cfg.seed, q))
-
-    def one_step(step, gen):
-        lr_g = log_linear_lr(step, cfg.steps, cfg.lr_grid, cfg.lr_grid_final, cfg.warmup_steps)
-        lr_m = log_linear_lr(step, cfg.steps, cfg.lr_mlp, cfg.lr_mlp_final, cfg.warmup_steps)
-        opt.param_groups[0]["lr"], opt.param_groups[1]["lr"] = lr_g, lr_m
-        batch = replay.batch(step, gen, teacher_batch)
-        o, d, cams, pidx, share, tout = (batch[k] for k in ("o", "d", "cams", "pidx", "share", "teacher"))
+        cams = drawn["origins"][sl].to(dp.device)  # un-jittered camera centres: where the MLP lattice is read
+        with torch.no_grad():
+            tout = teacher.render_rays(o, d, torch.tensor(bg, device=dp.device).expand(o.shape[0], 3),
+                                       noise=noise[sl].to(dp.device))
+        pidx = torch.as_tensor(params_idx[sl], device=dp.device)
         s_out = student.render(o, d, pidx, tout["t0"], tout["t1"], tout["ray_idx"], cfg.cull_threshold(step),
                                cfg.quantize, cams)
+        share = (sl.stop - sl.start) / n_rays  # this rank's share of the global mean
         target = tout["rgb"]
         ssim_l = patch_dssim(s_out["rgb"].view(-1, 3, 3, 3), target.view(-1, 3, 3, 3))
         if step < cfg.mse_warmup * cfg.steps:
@@ -334,7 +285,7 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
         loss = loss + cfg.mlp_tv_mult * student.mlp.tv_loss() / dp.world
         if cfg.empty_space_mult > 0:
             empty_l = empty_space_loss(student, teacher, clearance, cfg.empty_space_points, gen, cfg.quantize)
-            u = torch.rand(n_rays, CLEARANCE_SAMPLES, generator=gen)[batch["rank_rows"]]  # drawn whole: ranks agree
+            u = torch.rand(n_rays, CLEARANCE_SAMPLES, generator=gen)[sl]  # drawn whole: every rank's stream agrees
             clear_l = clearance_loss(student, clearance, o, d, pidx, u, cfg.quantize)
             loss = loss + cfg.empty_space_mult * (empty_l / dp.world + share * clear_l)
         terms = {"rgb": float(rgb_l.detach()), "dssim": float(ssim_l.detach()), "geometry": float(geo_l.detach()),
@@ -342,8 +293,8 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
         if cfg.empty_space_mult > 0:
             terms["empty_space"] = float(empty_l.detach())
             terms["clearance"] = float(clear_l.detach())
-        if batch["neighbour"] is not None:
-            nb = batch["neighbour"]
+        if neighbour is not None:
+            nb = torch.as_tensor(neighbour[sl], device=dp.device)
             keep = (nb >= 0)
             if keep.any():
                 nb = torch.where(keep, nb, pidx)

@@ -28,9 +28,6 @@ class DistillConfig:
         "help": "run --steps for every alive submodel (K > 1), as the paper gives each its whole budget; by default "
                 "the submodels share them"})
     batch_patches: int = dc_field(default=512, metadata={"help": "3x3 patches per step (512: 4608 rays)"})
-    teacher_reuse: int = dc_field(default=1, metadata={
-        "help": "steps each teacher render serves (default 1: a fresh render every step, as the authors); above 1, "
-                "a fresh batch every that many steps and the steps between replay recent ones"})
     lr_grid: float = 5e-2
     lr_grid_final: float = 2e-3
     lr_mlp: float = 5e-3
