@@ -1,6 +1,7 @@
 """The resumable pipeline on a tiny scene: every method evaluated, a report written, an interrupted distillation
 resumed, and the report's numbers equal to the per-stage evaluations."""
 import json
+import os
 from dataclasses import replace
 
 from nerfbake.cli import main
@@ -64,6 +65,11 @@ def test_a_changed_setting_reruns_its_stage_and_everything_downstream_and_says_w
     assert any("teacher_eval: runs again: eval_views 2 -> 3" in line for line in log), log
     assert json.loads((run / "stages" / "teacher_eval.json").read_text())["result"]["num_views"] == 3
     assert (run / "teacher" / "checkpoint.pt").stat().st_mtime_ns == teacher_ckpt
+    log = []  # the same dataset named another way (relative, with a trailing "/.") is the same teacher
+    renamed = os.path.relpath(tiny_scene) + "/."
+    run_pipeline(replace(tiny_pipeline(tiny_scene, run, methods=("octree",), eval_views=3), data=renamed),
+                 stop_after="teacher_eval", log=log.append)
+    assert any("teacher: done before" in line for line in log) and any("teacher_eval: done before" in line for line in log), log
     log = []
     run_pipeline(tiny_pipeline(tiny_scene, run, methods=("octree",), eval_views=3, teacher_steps=20),
                  stop_after="teacher_eval", log=log.append)

@@ -327,6 +327,15 @@ def why_changed(stage: Stage, old: dict, settings: dict, rerun: set[str]) -> str
     return "; ".join(parts) or "its data files changed"
 
 
+def recorded_data_name(run: Path, data: str | Path) -> str:
+    """``data`` as this run's teacher stage recorded it when both name the same folder (one relative, one absolute, or
+    spelled otherwise), so naming the dataset another way does not retrain a finished teacher; else ``data``
+    resolved. (The teacher's fingerprint also holds the data files' identity, so this only forgives the name.)"""
+    here = Path(data).resolve()
+    old = ((stage_record(run, "teacher", complete_only=False) or {}).get("settings") or {}).get("data")
+    return old if isinstance(old, str) and Path(old).resolve() == here else str(here)
+
+
 def run_pipeline(cfg: PipelineConfig, stop_after: str | None = None, log: Callable[[str], None] = print) -> dict:
     """Run (or resume) every stage the chosen methods need; returns the collected results (``RUN/results.json``)."""
     for m in cfg.methods:
@@ -339,7 +348,7 @@ def run_pipeline(cfg: PipelineConfig, stop_after: str | None = None, log: Callab
     if stop_after is not None and stop_after not in names:
         raise NerfbakeError(f"--stop-after {stop_after!r}: no such stage in this run; choose one of {', '.join(names)}")
     downscale, why = resolve_downscale(cfg)
-    cfg = replace(cfg, downscale=downscale, downscale_why=why)
+    cfg = replace(cfg, downscale=downscale, downscale_why=why, data=recorded_data_name(run, cfg.data))
     log(f"pipeline: {why}")
     settings = asdict(cfg)
     prints = fingerprints(stages, settings)
