@@ -28,7 +28,7 @@ from nerfbake.smerf.student import Student
 
 
 class StepTimer:
-    """Seconds spent in each wrapped function once ``counting`` is set (after the warm-up steps)."""
+    """Seconds spent in each wrapped function once ``counting_since`` is set (at the first step after the warm-up)."""
 
     def __init__(self):
         self.seconds = collections.defaultdict(float)
