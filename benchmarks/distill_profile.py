@@ -6,9 +6,13 @@ functions it calls; the first ``--warmup`` steps (kernel loading, first allocati
 on 2 cores a second busy process makes torch's worker threads spin and the shares meaningless (a profile taken
 beside another training run put the teacher at 66 % of a bonsai step; alone it is 19 %).
 
+``--dense-baseline`` runs the same steps a second time as distillation ran before RowAdam (torch's fused dense
+Adam over the whole grids, no row masks) and reports the ratio of the two step times.
+
     python benchmarks/distill_profile.py --teacher outputs/real/bonsai/teacher \
-        [--config outputs/real/bonsai/smerf/student/config.json] [--steps 16] [--warmup 3]
-    -> {"seconds_per_step": ..., "parts": {"backward": {"seconds_per_step": ..., "share": ...}, ...}}
+        [--config outputs/real/bonsai/smerf/student/config.json] [--steps 16] [--warmup 3] [--dense-baseline]
+    -> {"seconds_per_step": ..., "parts": {"backward": {"seconds_per_step": ..., "share": ...}, ...},
+        "dense_baseline": {"seconds_per_step": ..., "parts": ...}, "speedup_over_dense": ...}
 """
 from __future__ import annotations
 
@@ -25,6 +29,7 @@ import torch
 from nerfbake.smerf import distill as distill_module
 from nerfbake.smerf.run import config_from_file, distill_preset
 from nerfbake.smerf.student import Student
+from nerfbake.train.row_adam import RowAdam
 
 
 class StepTimer:
@@ -52,8 +57,9 @@ def instrument(timer: StepTimer, warmup: int) -> None:
     d.patch_dssim = timer.wrap("dssim", d.patch_dssim)
     d.PixelStore.sample_rays = timer.wrap("sample_rays", d.PixelStore.sample_rays)
     Student.render = timer.wrap("student_render", Student.render)
-    torch.optim.Adam.step = timer.wrap("adam", torch.optim.Adam.step)
-    torch.optim.Optimizer.zero_grad = timer.wrap("zero_grad", torch.optim.Optimizer.zero_grad)
+    for opt in (RowAdam, torch.optim.Adam):
+        opt.step = timer.wrap("adam", opt.step)
+        opt.zero_grad = timer.wrap("zero_grad", opt.zero_grad)
     torch.Tensor.backward = timer.wrap("backward", torch.Tensor.backward)
     load_teacher = d.load_teacher
 
@@ -79,6 +85,8 @@ def main() -> None:
     ap.add_argument("--config", help="a student's config.json or a distillation config (default: the cpu-small preset)")
     ap.add_argument("--steps", type=int, default=16, help="steps to run, warm-up included")
     ap.add_argument("--warmup", type=int, default=3, help="first steps not counted")
+    ap.add_argument("--dense-baseline", action="store_true",
+                    help="also run the steps under dense Adam and report the speed-up of the row-wise one")
     args = ap.parse_args()
     if args.steps <= args.warmup:
         ap.error("--steps must exceed --warmup")
@@ -86,18 +94,36 @@ def main() -> None:
     cfg = replace(cfg, val_every=10 ** 9, checkpoint_every=10 ** 9, tensorboard=False)
     timer = StepTimer()
     instrument(timer, args.warmup)
+    result = {"benchmark": "distill_profile", "teacher": args.teacher, "config": args.config,
+              "steps_counted": args.steps - args.warmup, "torch_threads": torch.get_num_threads(),
+              **profile(timer, args.teacher, cfg, args.steps, args.warmup)}
+    if args.dense_baseline:
+        row_masks, row_adam = Student.row_masks, distill_module.RowAdam
+        Student.row_masks = lambda self: {}  # the lookup records no rows
+        distill_module.RowAdam = lambda groups, row_masks, **kw: torch.optim.Adam(groups, fused=True, **kw)
+        try:
+            result["dense_baseline"] = profile(timer, args.teacher, cfg, args.steps, args.warmup)
+        finally:
+            Student.row_masks, distill_module.RowAdam = row_masks, row_adam
+        result["speedup_over_dense"] = round(result["dense_baseline"]["seconds_per_step"]
+                                             / result["seconds_per_step"], 3)
+    print(json.dumps(result, indent=1))
+
+
+def profile(timer: StepTimer, teacher: str, cfg, steps: int, warmup: int) -> dict:
+    """Seconds a step and each part's share over ``steps - warmup`` steps of a scratch distillation."""
+    timer.seconds.clear()
+    timer.counting_since = None
     scratch = tempfile.mkdtemp(prefix="distill_profile_")
     try:
-        distill_module.distill(args.teacher, f"{scratch}/student", cfg, stop_at=args.steps)
+        distill_module.distill(teacher, f"{scratch}/student", cfg, stop_at=steps)
         total = time.perf_counter() - timer.counting_since
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
-    counted = args.steps - args.warmup
+    counted = steps - warmup
     parts = {name: {"seconds_per_step": round(s / counted, 4), "share": round(s / total, 3)}
              for name, s in sorted(timer.seconds.items(), key=lambda kv: -kv[1])}
-    print(json.dumps({"benchmark": "distill_profile", "teacher": args.teacher, "config": args.config,
-                      "steps_counted": counted, "seconds_per_step": round(total / counted, 4),
-                      "torch_threads": torch.get_num_threads(), "parts": parts}, indent=1))
+    return {"seconds_per_step": round(total / counted, 4), "parts": parts}
 
 
 if __name__ == "__main__":

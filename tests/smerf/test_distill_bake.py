@@ -51,6 +51,23 @@ def test_lookup_kernel_matches_reference_values_and_gradients(quantize, device):
     assert torch.allclose(mine[0], sparse.grad, atol=1e-5) and torch.allclose(mine[1], planes.grad, atol=1e-5)
 
 
+@devices
+def test_lookup_backward_marks_exactly_the_rows_it_writes(device):
+    sparse, planes, z, sm = _grids(seed=2)
+    z = z.clamp(-1.7, 1.7)  # between the outermost texel centres: every stencil weight > 0, written == non-zero gradient
+    on = [torch.nn.Parameter(p.detach().to(device)) for p in (sparse, planes)]
+    masks = [torch.zeros(p.shape[0], dtype=torch.uint8, device=device) for p in on]
+    a, b = merf_lookup(z.to(device), sm.to(device), *on, 8, 16, False, masks)
+    (a.sum() + b.sum()).backward()
+    for p, m in zip(on, masks):
+        assert torch.equal(m.bool().cpu(), (p.grad != 0).any(1).cpu())
+        assert 0 < int(m.sum()) < p.shape[0]
+    sparse_only = torch.zeros_like(masks[0])  # one grid recorded, the other not
+    a, b = merf_lookup(z.to(device), sm.to(device), *on, 8, 16, False, (sparse_only, None))
+    (a.sum() + b.sum()).backward()
+    assert torch.equal(sparse_only, masks[0])
+
+
 def test_lookup_gradient_matches_finite_differences():
     sparse, planes, z, sm = _grids(seed=1)
     a, b = merf_lookup(z, sm, sparse, planes, 8, 16, False)

@@ -112,9 +112,11 @@ def lookup_forward(z: wp.array(dtype=wp.vec3), sm: wp.array(dtype=wp.int32), spa
 @wp.kernel
 def lookup_backward(z: wp.array(dtype=wp.vec3), sm: wp.array(dtype=wp.int32), grad_sparse_out: wp.array2d(dtype=wp.float32),
                     grad_planes_out: wp.array2d(dtype=wp.float32), s: int, t: int, ch0: int, ch_stride: int,
-                    grad_sparse: wp.array2d(dtype=wp.float32), grad_planes: wp.array2d(dtype=wp.float32)):
+                    mark_sparse: int, mark_planes: int, grad_sparse: wp.array2d(dtype=wp.float32), grad_planes: wp.array2d(dtype=wp.float32),
+                    touched_sparse: wp.array(dtype=wp.uint8), touched_planes: wp.array(dtype=wp.uint8)):
     """Thread (channel, point): scatter the two outputs' gradients (N, 8) into ``grad_sparse`` and ``grad_planes``
-    with :func:`lookup_forward`'s weights."""
+    with :func:`lookup_forward`'s weights; channel 0's threads also set the stencil's rows in ``touched_sparse``
+    (when ``mark_sparse``) and ``touched_planes`` (when ``mark_planes``): the rows a lazy optimizer must visit."""
     j, n = wp.tid()
     ch = ch0 + j * ch_stride
     p = z[n]
@@ -122,23 +124,30 @@ def lookup_backward(z: wp.array(dtype=wp.vec3), sm: wp.array(dtype=wp.int32), gr
     pbase = sm[n] * 3 * t * t
     gs = grad_sparse_out[n, ch]
     gp = grad_planes_out[n, ch]
+    flag_s = mark_sparse != 0 and ch == 0
+    flag_p = mark_planes != 0 and ch == 0
     for c in range(8):
         row, w = sparse_corner(p, s, c)
         wp.atomic_add(grad_sparse, sbase + row, ch, w * gs)
+        if flag_s:
+            touched_sparse[sbase + row] = wp.uint8(1)
     for k in range(3):
         for c in range(4):
             row, w = plane_corner(p, t, k, c)
             wp.atomic_add(grad_planes, pbase + row, ch, w * gp)
+            if flag_p:
+                touched_planes[pbase + row] = wp.uint8(1)
 
 
 class MerfLookup(torch.autograd.Function):
     """(z (N,3), sm (N,) int32, sparse (rows, 8), planes (rows, 8)) -> sparse values (N, 8), plane sums (N, 8).
 
     Leaf parameters get their gradient added in place (no grid-sized temporaries per step); CPU backward
-    launches deal the 8 channels out over threads so no two threads write the same element."""
+    launches deal the 8 channels out over threads so no two threads write the same element. ``touched``, when
+    given, is a pair (sparse rows, plane rows) of uint8 row masks or None: the backward sets every row it writes."""
 
     @staticmethod
-    def forward(ctx, z, sm, sparse, planes, s: int, t: int, quantize: bool):
+    def forward(ctx, z, sm, sparse, planes, s: int, t: int, quantize: bool, touched=None):
         z = z.detach().contiguous().float()
         sm = sm.to(torch.int32).contiguous()
         n = z.shape[0]
@@ -155,6 +164,7 @@ class MerfLookup(torch.autograd.Function):
         ctx.save_for_backward(z, sm)
         ctx.params = (sparse, planes)
         ctx.sizes = (int(s), int(t))
+        ctx.touched = touched
         return out_s, out_p
 
     @staticmethod
@@ -176,21 +186,27 @@ class MerfLookup(torch.autograd.Function):
             parts = 1 if dev != "cpu" else min(cpu_threads(), CHANNELS)
             args = [wp.from_torch(z, dtype=wp.vec3), wp.from_torch(sm), wp.from_torch(g_s.contiguous().float()),
                     wp.from_torch(g_p.contiguous().float()), s, t]
+            touched = ctx.touched if ctx.touched is not None else (None, None)
+            marks = [int(m is not None) for m in touched]
+            unused = torch.zeros(1, dtype=torch.uint8, device=z.device)
             outs = [wp.from_torch(grads[0]), wp.from_torch(grads[1])]
+            outs += [wp.from_torch(m if m is not None else unused) for m in touched]
             parallel_map(lambda c0: wp.launch(lookup_backward, dim=(len(range(c0, CHANNELS, parts)), n),
-                                              inputs=args + [c0, parts] + outs, device=dev), range(parts))
+                                              inputs=args + [c0, parts] + marks + outs, device=dev), range(parts))
         ret = [None if (p.is_leaf and p.requires_grad) else g for p, g in zip(ctx.params, grads)]
-        return None, None, ret[0], ret[1], None, None, None
+        return None, None, ret[0], ret[1], None, None, None, None
 
 
-def merf_lookup(z, sm, sparse, planes, s: int, t: int, quantize: bool = True):
+def merf_lookup(z, sm, sparse, planes, s: int, t: int, quantize: bool = True, touched=None):
     """MERF's grid read on the Warp kernels: contracted points ``z`` (N, 3) in [-2, 2]^3 of submodels ``sm`` (N,)
     int32 -> (sparse (N, 8), planes (N, 8)): the trilinear read of submodel ``sm``'s S^3 grid (``sparse``
     rows sm * S^3 + (u * S + v) * S + w) and the sum of its three bilinear T^2 plane reads (``planes`` rows
     (sm * 3 + k) * T^2 + a * T + b), each texel first sent through the viewer's 8-bit round trip when
-    ``quantize`` (straight-through). Gradients reach ``sparse`` and ``planes``; :func:`merf_lookup_reference` is
-    the torch twin."""
-    return MerfLookup.apply(z, sm, sparse, planes, s, t, quantize)
+    ``quantize`` (straight-through). Gradients reach ``sparse`` and ``planes``; ``touched`` (a pair of uint8 masks
+    over their rows, or None for either, e.g. for a :class:`~nerfbake.train.row_adam.RowAdam`) records which rows
+    the backward wrote.
+    :func:`merf_lookup_reference` is the torch twin."""
+    return MerfLookup.apply(z, sm, sparse, planes, s, t, quantize, touched)
 
 
 def merf_lookup_reference(z, sm, sparse, planes, s: int, t: int, quantize: bool = True):

@@ -50,6 +50,7 @@ from nerfbake.teacher.protocol import Teacher
 from nerfbake.teacher.run import load_teacher
 from nerfbake.train.loop import (DataParallel, finish_run, git_revision, load_checkpoint, log_linear_lr, run_complete,
                                  run_steps, to_jsonable, write_json_atomic)
+from nerfbake.train.row_adam import RowAdam
 
 
 CLEARANCE_SAMPLES = 2  # points per training ray in front of the teacher's near bound (clearance_loss)
@@ -222,9 +223,9 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
     student = Student(cfg.student, partition, cfg.seed).to(dp.device)
     if cfg.warm_start and not (resume and (out / CHECKPOINT).is_file()):
         warm_start_density(student, teacher, clearance)
-    opt = torch.optim.Adam([{"params": [student.sparse, student.planes], "lr": cfg.lr_grid},
-                            {"params": list(student.mlp.parameters()), "lr": cfg.lr_mlp}],
-                           betas=(0.9, 0.99), eps=1e-15, fused=True)
+    opt = RowAdam([{"params": [student.sparse, student.planes], "lr": cfg.lr_grid},
+                   {"params": list(student.mlp.parameters()), "lr": cfg.lr_mlp}],
+                  row_masks=student.row_masks(), betas=(0.9, 0.99), eps=1e-15)
     start = 0
     ckpt = out / CHECKPOINT
     if resume and ckpt.is_file():
@@ -306,6 +307,7 @@ def distill(teacher_run: str | Path, out: str | Path, cfg: DistillConfig, resume
         opt.zero_grad(set_to_none=False)
         loss.backward()
         dp.all_reduce_grads(student.parameters())
+        dp.all_reduce_masks(student.row_masks().values())  # every rank visits the rows any rank wrote
         opt.step()
         mse = dp.all_reduce_sum(float(((s_out["rgb"].detach().clamp(0, 1) - target) ** 2).sum())) / (3 * n_rays)
         return n_rays, {"loss": float(loss.detach()), "psnr_vs_teacher": -10 * math.log10(max(mse, 1e-10)),

@@ -151,6 +151,13 @@ class DataParallel:
             g.copy_(flat[offset: offset + g.numel()].view_as(g))
             offset += g.numel()
 
+    def all_reduce_masks(self, masks) -> None:
+        """Union of uint8 row masks over ranks, in place (after :meth:`all_reduce_grads`, the rows any rank wrote)."""
+        if self.world == 1:
+            return
+        for m in masks:
+            dist.all_reduce(m, op=dist.ReduceOp.MAX)
+
     def all_reduce_sum(self, value: float) -> float:
         if self.world == 1:
             return value
