@@ -178,7 +178,7 @@ def run_octree_build(cfg: PipelineConfig, run: Path) -> dict:
 
 def run_octree_optimize(cfg: PipelineConfig, run: Path) -> dict:
     o = optimize_preset(cfg.preset)
-    if cfg.octree_epochs:
+    if cfg.octree_epochs is not None:  # 0: no fine-tuning (the route's figure on bonsai moved 0.00 dB in an epoch)
         o = replace(o, epochs=cfg.octree_epochs)
     if cfg.octree_lr:
         o = replace(o, lr=cfg.octree_lr)

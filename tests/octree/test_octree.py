@@ -362,6 +362,9 @@ def test_build_optimize_compress_eval_on_a_tiny_scene(tiny_scene, tiny_teacher, 
                         OptimizeConfig(epochs=2, lr=1e5, val_every=1, val_views=2))
     assert res["best_val_psnr"] >= res["history"][0]["val_psnr"]
     assert load_tree(tmp_path / "opt.npz").num_leaves == tree.num_leaves
+    res = optimize_tree(tmp_path / "tree.npz", tiny_scene, tmp_path / "kept.npz", OptimizeConfig(epochs=0, val_views=2))
+    assert res["best_epoch"] == 0 and len(res["history"]) == 1  # 0 epochs: the built tree, unchanged
+    assert torch.equal(load_tree(tmp_path / "kept.npz").data, load_tree(tmp_path / "tree.npz").data)
 
     assert main(["octree", "compress", "--tree", str(tmp_path / "opt.npz"), "--out", str(tmp_path / "c.npz"),
                  "--retain", "1", "--sigma-thresh", "0.5"]) == 0

@@ -57,7 +57,8 @@ class Pipeline(Command):
     octree_grid: int | None = option(None)
     octree_box_scale: float | None = option(None, "unbounded scenes: the octree covers the teacher's core cube times "
                                             "this (octree build --box-scale); bounded scenes ignore it")
-    octree_epochs: int | None = option(None)
+    octree_epochs: int | None = option(None, "octree fine-tuning epochs (default: the preset's; 0 keeps the built "
+                                       "tree)")
     octree_lr: float | None = option(None)
     bake_stride: int = option(2)
     teacher_config: str | None = option(None, "a teacher training config JSON (e.g. a run's config.json) instead of "
