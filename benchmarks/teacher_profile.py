@@ -17,7 +17,9 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import time
+from pathlib import Path
 
 import torch
 from torch.profiler import ProfilerActivity, profile, record_function
@@ -28,8 +30,11 @@ from nerfbake.teacher import models as teacher_models
 from nerfbake.teacher.models import build_teacher
 from nerfbake.teacher.presets import preset
 from nerfbake.teacher.proposal import ProposalSampler
-from nerfbake.teacher.train import draw_batch, loss_terms, make_optimizer, scene_box
-from nerfbake.train.loop import DataParallel, git_revision, step_generator
+from nerfbake.teacher.train import make_optimizer, scene_box
+from nerfbake.train.loop import DataParallel, git_revision
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from teacher_speed import train_step  # noqa: E402
 
 
 def labelled(name: str, fn):
@@ -64,10 +69,6 @@ def part_of(event, field_levels: int) -> str | None:
     return None
 
 
-def c_children(event) -> list:
-    return list(event.cpu_children or [])
-
-
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", required=True)
@@ -87,14 +88,7 @@ def main() -> None:
     ProposalSampler.losses = labelled("proposal_losses", ProposalSampler.losses)
 
     def step(s: int) -> None:
-        gen = step_generator(cfg.seed, s)
-        model.train()
-        model.before_step(s, gen)
-        batch = draw_batch(store, model, cfg, gen, dp)
-        loss, _, _, _ = loss_terms(model, batch, cfg.batch_rays, gen)
-        opt.zero_grad(set_to_none=False)
-        loss.backward()
-        opt.step()
+        loss, _ = train_step(model, opt, store, cfg, dp, s)
         float(loss)  # waits for the step, as the trainer's logging does
 
     for s in range(args.warmup):
@@ -110,7 +104,7 @@ def main() -> None:
     def inner_parts(event) -> float:
         """CPU seconds of the parts nested inside ``event`` (the proposal sampling runs its own hash encoding and
         MLP), so that each op counts in one part only."""
-        return sum(c.cpu_time_total / 1e6 if part_of(c, field_levels) else inner_parts(c) for c in c_children(event))
+        return sum(c.cpu_time_total / 1e6 if part_of(c, field_levels) else inner_parts(c) for c in event.cpu_children or [])
 
     for event in prof.events():
         part = part_of(event, field_levels)

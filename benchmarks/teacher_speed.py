@@ -29,10 +29,25 @@ def sync() -> None:
         torch.cuda.synchronize()
 
 
+def train_step(model, opt, store, cfg, dp: DataParallel, step: int):
+    """One training step as ``teacher.train`` takes it (its batch draw, loss and optimiser; no learning-rate
+    schedule); returns the loss and the render."""
+    gen = step_generator(cfg.seed, step)
+    model.train()
+    model.before_step(step, gen)
+    batch = draw_batch(store, model, cfg, gen, dp)
+    loss, _, out, _ = loss_terms(model, batch, cfg.batch_rays, gen)
+    opt.zero_grad(set_to_none=False)  # as the trainer: keeps the hash gradient buffer
+    loss.backward()
+    opt.step()
+    return loss, out
+
+
 def time_training(kind: str, ds, store, warmup: int, steps: int, cfg=None) -> dict:
     """Training and rendering rates of one teacher (the preset's, or ``cfg``) after ``warmup`` steps."""
     cfg = cfg or preset(kind, "cpu-small")
-    device = default_device()
+    dp = DataParallel()  # first: sets the CPU threads' float mode as a trainer does
+    device = dp.device
     model = build_teacher(kind, cfg.model_config, scene_box(ds)).to(device)
     opt = make_optimizer(model, cfg)
     samples = 0
@@ -41,13 +56,7 @@ def time_training(kind: str, ds, store, warmup: int, steps: int, cfg=None) -> di
             sync()
             t = time.perf_counter()
             samples = 0
-        gen = step_generator(0, step)
-        model.before_step(step, gen)
-        batch = draw_batch(store, model, cfg, gen, DataParallel())
-        loss, _, out, _ = loss_terms(model, batch, cfg.batch_rays, gen)
-        opt.zero_grad(set_to_none=False)  # as the trainer: keeps the hash gradient buffer
-        loss.backward()
-        opt.step()
+        _, out = train_step(model, opt, store, cfg, dp, step)
         samples += out["num_samples"]
     sync()
     dt = time.perf_counter() - t
