@@ -160,12 +160,15 @@ def test_grid_mlp_interpolation_matches_the_viewer():
             assert np.allclose(k[0].detach().numpy(), rk, atol=1e-5) and np.allclose(b[0].detach().numpy(), rb, atol=1e-5)
 
 
-def test_one_deferred_mlp_at_k1_the_authors_lattice_above_and_the_viewer_reads_either():
+def test_one_deferred_mlp_per_submodel_the_authors_lattice_in_the_paper_preset_and_the_viewer_reads_either():
     rooms = np.concatenate([np.random.default_rng(0).uniform([-4, -1, -1], [-2, 1, 1], (30, 3)),
                             np.random.default_rng(1).uniform([2, 3, -1], [4, 5, 1], (30, 3))])
     k1, k2 = Partition.from_cameras(rooms, k=1), Partition.from_cameras(rooms, k=2)
     assert Student(StudentConfig(sparse_resolution=4, triplane_resolution=8), k1).mlp.grid == 1
-    assert Student(StudentConfig(sparse_resolution=4, triplane_resolution=8), k2).mlp.grid == 5
+    assert Student(StudentConfig(sparse_resolution=4, triplane_resolution=8), k2).mlp.grid == 1
+    # students recorded before one MLP at every K (mlp_grid None) load with the lattice they were trained with
+    assert Student(StudentConfig(sparse_resolution=4, triplane_resolution=8, mlp_grid=None), k2).mlp.grid == 5
+    assert mlp_lattice_size(StudentConfig(mlp_grid=None), 1) == 1
     assert mlp_lattice_size(StudentConfig(mlp_grid=3), 1) == 3 and mlp_lattice_size(StudentConfig(mlp_grid=1), 2) == 1
     assert distill_preset("paper").student.mlp_grid == 5  # the authors' lattice at every K in the GPU preset
     # P = 1: the viewer's corner clamping gives the one MLP at every camera position, inside the cell or not
