@@ -13,7 +13,7 @@ not bigger ones.
 
     python benchmarks/smerf_partition.py [--scene rooms|house] [--size 128] [--views N] [--spp 64]
                                          [--teacher-steps 2000] [--steps 2000] [--steps-per-submodel] [--k 1,2,3]
-                                         [--boundary-views 3] [--walkthrough] [--work DIR]
+                                         [--seed 0] [--boundary-views 3] [--walkthrough] [--work DIR]
 
 ``--walkthrough`` also flies the viewer along the test cameras (room after room) over each K's assets in headless
 chromium: per-frame p50/p95/max, frames drawn while a submodel loaded, blank frames, the most submodels resident.
@@ -125,6 +125,8 @@ def main() -> None:
                     "preset's)")
     ap.add_argument("--camera-radius", type=float, default=1.5, help="bake each submodel from the training cameras "
                     "within this many cell widths of its centre (0: its own; assets_kK_rR/ unless 1.5)")
+    ap.add_argument("--seed", type=int, default=0, help="the distillations' seed (their ray draws, jitter and "
+                    "initial MLPs), to measure the spread between runs")
     ap.add_argument("--boundary-views", type=int, default=3)
     ap.add_argument("--work", help="keep everything here and reuse what is finished (default: a temporary folder)")
     args = ap.parse_args()
@@ -145,7 +147,7 @@ def main() -> None:
               "teacher": {"steps": args.teacher_steps, "seconds": run_seconds(teacher_dir),
                           **{k: round(teacher_eval[k], 4) for k in ("psnr", "ssim", "lpips_vgg")}},
               "student_config": {"steps": args.steps, "sparse_resolution": args.sparse, "triplane_resolution": args.triplane,
-                                 "warm_start": args.warm_start or "preset",
+                                 "warm_start": args.warm_start or "preset", "seed": args.seed,
                                  "consistency_mult": "preset" if args.consistency is None else args.consistency},
               "per_k": {}, "boundary": {}}
     teacher = load_teacher(teacher_dir)[0].eval()
@@ -155,7 +157,7 @@ def main() -> None:
         student_dir = work / f"student_k{k}"
         assets = work / (f"assets_k{k}" if args.camera_radius == 1.5 else f"assets_k{k}_r{args.camera_radius:g}")
         cfg = distill_preset("cpu-small", k)
-        cfg = replace(cfg, steps=args.steps, student=StudentConfig(sparse_resolution=args.sparse,
+        cfg = replace(cfg, steps=args.steps, seed=args.seed, student=StudentConfig(sparse_resolution=args.sparse,
                                                                      triplane_resolution=args.triplane,
                                                                      mlp_grid=args.mlp_grid))
         if args.warm_start:
@@ -168,7 +170,7 @@ def main() -> None:
         # students from before these options have neither key
         newer = {key: True for key in ("warm_start", "steps_per_submodel") if getattr(cfg, key)}
         need_distill = not finished_with(student_dir, "distill", steps=args.steps, student=asdict(cfg.student),
-                                         consistency_mult=cfg.consistency_mult, **newer)
+                                         consistency_mult=cfg.consistency_mult, seed=cfg.seed, **newer)
         baked_with = json.loads((assets / "bake.json").read_text()).get("camera_radius", 0.0) \
             if (assets / "bake.json").is_file() else None  # bakes before the option used a submodel's own cameras
         if need_distill or baked_with != args.camera_radius or not rss_file.is_file():
