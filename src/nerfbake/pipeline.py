@@ -436,7 +436,7 @@ def demo_config(out: str, data: str, eval_views: int = 6) -> PipelineConfig:
     K > 1) bought nothing. T = 512 scored 31.67 and 31.74 (with a doubled grid learning rate) but doubles the
     viewer's steps through the scene and adds ~40 s; the demo keeps 256.
 
-    One deferred MLP instead of the 5^3 lattice (the K = 1 default, :func:`~nerfbake.smerf.student.mlp_lattice_size`)
+    One deferred MLP instead of the 5^3 lattice (the default, :func:`~nerfbake.smerf.student.mlp_lattice_size`)
     and the core grown to fill the objects (``core_fill_quantile`` 0.98, now the cpu-small preset's; factor 4.0) took
     the baked scene from 30.91 / 30.61 dB (seeds 0 / 1, P = 5, factor 2.5) to 32.73 / 32.47, within 1.0 dB of the
     33.50 dB teacher (P = 1 alone: 32.11; the fill alone: 31.44 / 30.85). The fill costs the viewer finer steps
