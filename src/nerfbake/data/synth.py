@@ -148,12 +148,14 @@ def _noise_texture(seed: int, size: int = 512) -> np.ndarray:
     every scale and no repetition, so every patch is distinctive."""
     rng = np.random.default_rng(seed)
     img = np.full((size, size, 3), 0.5, np.float32)
-    yy, xx = np.mgrid[0:size, 0:size]
     for _ in range(700):
         r = size * 0.012 / rng.uniform(0.08, 1.0)  # more small discs than large ones (radius ~ 1/uniform)
         cx, cy = rng.uniform(0, size, 2)
+        x0, x1 = max(0, int(cx - r)), min(size, int(cx + r) + 2)  # the disc's bounding square
+        y0, y1 = max(0, int(cy - r)), min(size, int(cy + r) + 2)
+        yy, xx = np.mgrid[y0:y1, x0:x1]
         mask = (xx - cx) ** 2 + (yy - cy) ** 2 < r * r
-        img[mask] = rng.uniform(0.03, 0.97, 3)
+        img[y0:y1, x0:x1][mask] = rng.uniform(0.03, 0.97, 3)
     return img
 
 
