@@ -13,7 +13,12 @@ not bigger ones.
 
     python benchmarks/smerf_partition.py [--scene rooms|house] [--size 128] [--views N] [--spp 64]
                                          [--teacher-steps 2000] [--steps 2000] [--steps-per-submodel] [--k 1,2,3]
-                                         [--seed 0] [--boundary-views 3] [--walkthrough] [--work DIR]
+                                         [--seed 0] [--boundary-views 3] [--teacher-floor 25] [--walkthrough]
+                                         [--work DIR]
+
+``paired``: each K against the previous one view by view (mean PSNR difference ± its standard error), over every
+test view and over the views the teacher renders at ``--teacher-floor`` dB or better: where the teacher fails, the
+students' differences are noise.
 
 ``--walkthrough`` also flies the viewer along the test cameras (room after room) over each K's assets in headless
 chromium: per-frame p50/p95/max, frames drawn while a submodel loaded, blank frames, the most submodels resident.
@@ -36,6 +41,7 @@ import numpy as np
 
 from nerfbake.data.formats import load_dataset
 from nerfbake.data.synth import SynthConfig, render_dataset
+from nerfbake.signals import terminate_like_ctrl_c
 from nerfbake.smerf.assets import SceneAssets
 from nerfbake.smerf.run import distill_preset, load_student
 from nerfbake.smerf.evaluate import asset_summary, evaluate_assets, evaluate_student
@@ -72,12 +78,17 @@ def run_seconds(folder: Path) -> float:
 
 CHILD = """
 import json, resource, sys
+from pathlib import Path
+from nerfbake.signals import terminate_like_ctrl_c
 from nerfbake.smerf.bake import bake_student
 from nerfbake.smerf.distill import distill
 from nerfbake.smerf.run import config_from_dict
+terminate_like_ctrl_c()
 teacher, student, assets, cfg, need_distill, camera_radius = json.loads(sys.argv[1])
 if need_distill:
     distill(teacher, student, config_from_dict(cfg))
+    if not json.loads((Path(student) / "config.json").read_text()).get("complete"):
+        sys.exit(0)  # stopped by a signal at a checkpoint: no bake of a half-trained student (the parent says so)
 bake_student(student, assets, camera_radius=camera_radius)
 print(json.dumps({"peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024}))
 """
@@ -89,19 +100,49 @@ def interrupted(stage: str, folder: Path) -> SystemExit:
                       "run it again")
 
 
+def per_view_psnr(evaluation: dict) -> dict[str, float]:
+    return {view["name"]: view["psnr"] for view in evaluation["per_image"]}
+
+
+def paired_differences(by_k: dict[int, dict[str, float]], teacher: dict[str, float], floor: float) -> dict:
+    """Each K against the previous one, view by view: the mean PSNR difference, its standard error and the view
+    count, over every test view and over those the teacher itself renders at ``floor`` dB or better. Where the
+    teacher fails (the house's bedrooms: fog in front of the camera, 9-17 dB), every student copies the failure
+    differently and those views' differences are noise that can outweigh the rest."""
+    ks = sorted(by_k)
+    ok = [n for n, v in teacher.items() if v >= floor]
+    out = {"teacher_ok_psnr_by_k": [round(float(np.mean([by_k[k][n] for n in ok])), 4) if ok else None for k in ks]}
+    for a, b in zip(ks, ks[1:]):
+        entry = {}
+        for subset, names in (("all", list(teacher)), ("teacher_ok", ok)):
+            diff = np.array([by_k[b][n] - by_k[a][n] for n in names])
+            se = round(float(diff.std(ddof=1) / np.sqrt(len(diff))), 3) if len(diff) > 1 else None
+            entry[subset] = {"mean_db": round(float(diff.mean()), 3) if len(diff) else None,
+                             "standard_error_db": se, "views": len(diff)}
+        out[f"{b}-{a}"] = entry
+    return out
+
+
 def distill_and_bake(teacher_dir: Path, student_dir: Path, assets: Path, cfg, need_distill: bool,
                      camera_radius: float) -> int:
     """Distil (unless finished) and bake in a child process; its peak RSS in bytes (this K's alone)."""
     arg = json.dumps([str(teacher_dir), str(student_dir), str(assets), asdict(cfg), need_distill, camera_radius])
-    proc = subprocess.run([sys.executable, "-c", CHILD, arg], stdout=subprocess.PIPE, text=True)
+    proc = subprocess.Popen([sys.executable, "-c", CHILD, arg], stdout=subprocess.PIPE, text=True)
+    try:
+        stdout, _ = proc.communicate()
+    except BaseException:  # Ctrl-C or SIGTERM here: stop the child too (its trainer saves a checkpoint first)
+        proc.terminate()
+        proc.wait()
+        raise
     if proc.returncode != 0:
         raise SystemExit(f"distill/bake of {student_dir} failed (exit {proc.returncode})")
     if not json.loads((student_dir / "config.json").read_text()).get("complete"):  # stopped by a signal
         raise interrupted("distillation", student_dir)
-    return int(json.loads(proc.stdout.strip().splitlines()[-1])["peak_rss_bytes"])
+    return int(json.loads(stdout.strip().splitlines()[-1])["peak_rss_bytes"])
 
 
 def main() -> None:
+    terminate_like_ctrl_c()  # a killed benchmark stops its distillation child too
     ap = argparse.ArgumentParser()
     ap.add_argument("--scene", choices=("rooms", "house"), default="rooms")
     ap.add_argument("--size", type=int, default=128)
@@ -128,6 +169,9 @@ def main() -> None:
     ap.add_argument("--seed", type=int, default=0, help="the distillations' seed (their ray draws, jitter and "
                     "initial MLPs), to measure the spread between runs")
     ap.add_argument("--boundary-views", type=int, default=3)
+    ap.add_argument("--teacher-floor", type=float, default=25.0,
+                    help="the paired K-against-K figures also count only the test views the teacher renders at this "
+                    "PSNR or better")
     ap.add_argument("--work", help="keep everything here and reuse what is finished (default: a temporary folder)")
     args = ap.parse_args()
     args.views = args.views or {"rooms": 80, "house": 280}[args.scene]
@@ -143,6 +187,7 @@ def main() -> None:
         if not finished_with(teacher_dir, "train", steps=args.teacher_steps):  # stopped by a signal: no figures
             raise interrupted("teacher", teacher_dir)
     teacher_eval = evaluate_teacher(teacher_dir, "test", write_images=False)
+    views = {"student": {}, "baked": {}}  # per K: PSNR per test view
     result = {"git": git_revision(), "scene": f"{args.scene} {args.size}x{args.size}, {args.views} training views, spp {args.spp}",
               "teacher": {"steps": args.teacher_steps, "seconds": run_seconds(teacher_dir),
                           **{k: round(teacher_eval[k], 4) for k in ("psnr", "ssim", "lpips_vgg")}},
@@ -182,6 +227,7 @@ def main() -> None:
         s_eval = evaluate_student(student_dir, write_images=False)
         b_eval = evaluate_assets(assets, write_images=False)
         sizes = asset_summary(assets)
+        views["student"][k], views["baked"][k] = per_view_psnr(s_eval), per_view_psnr(b_eval)
         result["per_k"][k] = {
             "num_submodels": b_eval["num_submodels"], "distill_seconds": run_seconds(student_dir),
             "distill_steps": json.loads((student_dir / "config.json").read_text()).get("total_steps", args.steps),
@@ -219,6 +265,8 @@ def main() -> None:
         "student_psnr_by_k": [result["per_k"][k]["student"]["psnr"] for k in ks],
         "baked_psnr_by_k": [result["per_k"][k]["baked"]["psnr"] for k in ks],
     }
+    result["paired"] = {"teacher_floor_db": args.teacher_floor, **{
+        kind: paired_differences(views[kind], per_view_psnr(teacher_eval), args.teacher_floor) for kind in views}}
     result["benchmark_peak_rss_bytes"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     print(json.dumps(result, indent=1))
     if not args.work:
@@ -226,4 +274,8 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except KeyboardInterrupt:
+        raise SystemExit("interrupted; a rerun with the same --work reuses every finished teacher, student and bake "
+                         "(an unfinished one starts over)") from None
