@@ -51,7 +51,7 @@ from nerfbake.teacher.evaluate import evaluate_teacher
 from nerfbake.teacher.presets import preset
 from nerfbake.teacher.run import load_teacher
 from nerfbake.teacher.train import train_teacher
-from nerfbake.train.loop import git_revision
+from nerfbake.train.loop import git_revision, run_complete
 
 QUALITY = ("psnr", "ssim", "lpips_vgg", "ms_per_frame")
 
@@ -78,16 +78,16 @@ def run_seconds(folder: Path) -> float:
 
 CHILD = """
 import json, resource, sys
-from pathlib import Path
 from nerfbake.signals import terminate_like_ctrl_c
 from nerfbake.smerf.bake import bake_student
 from nerfbake.smerf.distill import distill
 from nerfbake.smerf.run import config_from_dict
+from nerfbake.train.loop import run_complete
 terminate_like_ctrl_c()
 teacher, student, assets, cfg, need_distill, camera_radius = json.loads(sys.argv[1])
 if need_distill:
     distill(teacher, student, config_from_dict(cfg))
-    if not json.loads((Path(student) / "config.json").read_text()).get("complete"):
+    if not run_complete(student):
         sys.exit(0)  # stopped by a signal at a checkpoint: no bake of a half-trained student (the parent says so)
 bake_student(student, assets, camera_radius=camera_radius)
 print(json.dumps({"peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024}))
@@ -136,7 +136,7 @@ def distill_and_bake(teacher_dir: Path, student_dir: Path, assets: Path, cfg, ne
         raise
     if proc.returncode != 0:
         raise SystemExit(f"distill/bake of {student_dir} failed (exit {proc.returncode})")
-    if not json.loads((student_dir / "config.json").read_text()).get("complete"):  # stopped by a signal
+    if not run_complete(student_dir):  # stopped by a signal
         raise interrupted("distillation", student_dir)
     return int(json.loads(stdout.strip().splitlines()[-1])["peak_rss_bytes"])
 
@@ -265,8 +265,9 @@ def main() -> None:
         "student_psnr_by_k": [result["per_k"][k]["student"]["psnr"] for k in ks],
         "baked_psnr_by_k": [result["per_k"][k]["baked"]["psnr"] for k in ks],
     }
+    teacher_views = per_view_psnr(teacher_eval)
     result["paired"] = {"teacher_floor_db": args.teacher_floor, **{
-        kind: paired_differences(views[kind], per_view_psnr(teacher_eval), args.teacher_floor) for kind in views}}
+        kind: paired_differences(views[kind], teacher_views, args.teacher_floor) for kind in views}}
     result["benchmark_peak_rss_bytes"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     print(json.dumps(result, indent=1))
     if not args.work:
