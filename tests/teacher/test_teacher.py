@@ -12,7 +12,7 @@ from nerfbake.errors import RunFolderError
 from nerfbake.fields.hash_sh import HashSHConfig
 from nerfbake.render.quadrature import composite, weights_from_density
 from nerfbake.render.sh import eval_sh_color
-from nerfbake.teacher.models import HashTeacherConfig
+from nerfbake.teacher.models import HashTeacher, HashTeacherConfig
 from nerfbake.teacher.protocol import Teacher
 from nerfbake.teacher.run import config_from_dict, load_teacher
 from nerfbake.teacher.train import train_teacher
@@ -316,8 +316,10 @@ def test_object_centred_captures_get_the_points_box_and_a_learned_background():
 
 
 def test_a_blender_scene_with_its_cameras_inside_its_box_is_contracted():
-    """Indoors (cameras inside the box) the teacher marches contracted with proposal sampling: through the
-    occupancy grid such a field fogs up and paints each view in front of its camera. Object scenes keep the grid."""
+    """Indoors (cameras inside the box) the teacher is contracted: through the bounded occupancy grid such a field
+    fogged up and painted each view in front of its camera. It marches the contracted occupancy grid, not the
+    proposal network, which left fog in front of the synthetic house's bedroom cameras. Object scenes keep the
+    bounded grid; other contracted scenes the proposal network."""
     from nerfbake.data.cameras import Camera
     from nerfbake.data.dataset import Dataset, Frame
     from nerfbake.data.synth import look_at
@@ -334,6 +336,14 @@ def test_a_blender_scene_with_its_cameras_inside_its_box_is_contracted():
     assert indoor.contracted and indoor.box_min == aabb[0] and indoor.near == 0.05 and indoor.far > 1e9
     outdoor = scene_box(blender([[4.0, 0.0, 2.0], [0.0, 4.0, 2.0], [-4.0, 0.0, 2.0]]))
     assert not outdoor.contracted and outdoor.box_min == [-1.5] * 3 and outdoor.far == 5.0
+    assert indoor.indoor and not outdoor.indoor
+    small = HashTeacherConfig(HashSHConfig(levels=4, log2_table=10, max_res=64), grid_resolution=16)
+    marched = HashTeacher(small, indoor)
+    assert not marched.uses_proposal and marched.grid.contracted and not hasattr(marched, "proposal")
+    real_capture = replace(indoor, indoor=False)  # e.g. a room captured with COLMAP: contracted, not given a box
+    assert HashTeacher(small, real_capture).uses_proposal
+    assert not HashTeacher(replace(small, unbounded_sampler="grid"), real_capture).uses_proposal
+    assert HashTeacher(replace(small, unbounded_sampler="proposal"), indoor).uses_proposal  # as runs recorded it
 
 
 def test_paper_nerf_sh_density_survives_its_first_adam_steps(lego, tmp_path):

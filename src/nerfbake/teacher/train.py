@@ -33,7 +33,9 @@ def scene_box(ds: Dataset) -> SceneBox:
       no other camera sees (the synthetic textured scene, 32 views, 1000 steps: 11 dB on held-out views).
     * Everything else (forward-facing, unbounded 360°, and Blender scenes whose cameras stand inside their box) is
       covered at full resolution in the box ([-1, 1]^3 for real captures), with the contraction taking in
-      everything beyond.
+      everything beyond. A Blender scene whose cameras stand inside its box is an indoor scene (``SceneBox.indoor``):
+      its teacher marches the occupancy grid rather than sampling with the proposal network (see
+      ``HashTeacherConfig.unbounded_sampler``).
 
     The near plane is 0.9 x the near bound of the sparse points (LLFF's rule) where the dataset has one: space in
     front of it is seen by one camera alone, and a contracted teacher left to use it explains each view with a
@@ -44,7 +46,7 @@ def scene_box(ds: Dataset) -> SceneBox:
         near, far = ds.bounds or (2.0, 6.0)
         lo, hi = ds.extras.get("aabb", ([-1.5] * 3, [1.5] * 3))
         if kind != "object-centric":
-            return SceneBox(list(lo), list(hi), near, 1e10, contracted=True)
+            return SceneBox(list(lo), list(hi), near, 1e10, contracted=True, indoor=True)
         return SceneBox(list(lo), list(hi), near, far)
     near = 0.01 if ds.bounds is None else max(0.01, 0.9 * ds.bounds[0])
     if kind == "object-centric":
