@@ -31,8 +31,8 @@ class SceneBox:
     # opaque photos, whose box holds the object and its surroundings but not the far background).
     learned_background: bool = False
     # A given box that holds the cameras (a Blender scene with ``aabb`` whose cameras stand inside it): an indoor
-    # scene whose walls end every ray. Contracted like any scene with cameras inside, but sampled by marching
-    # (``unbounded_sampler`` auto).
+    # scene, whose walls lie inside the box. Contracted like any scene with cameras inside (rays still march on past
+    # the box), but sampled by marching the grid (``unbounded_sampler`` auto).
     indoor: bool = False
 
 
@@ -76,7 +76,7 @@ class HashTeacherConfig:
     # Unbounded (contracted) scenes: "proposal" samples with a proposal network (mip-NeRF 360: 64 proposal and 32
     # final samples a ray); "grid" marches an occupancy grid over contracted space with steps that grow as r^2
     # beyond the unit cube (kernels/march.py), with the distortion loss and near-camera gradient scaling of the
-    # proposal path. The grid is not the default: a real scene's rays all end on a surface and the grid cannot skip
+    # proposal path. The grid is not the default for real captures: a real scene's rays all end on a surface and the grid cannot skip
     # what lies behind it (fern after warm-up: 46 samples a ray kept for the gradient pass, 2.5k training rays/s
     # against the proposal path's 5.0k; benchmarks/unbounded_speed.py). "auto" (the default) marches the grid in
     # indoor scenes (SceneBox.indoor) and uses the proposal network elsewhere: in the synthetic house (seven rooms, 280
