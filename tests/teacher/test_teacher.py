@@ -166,6 +166,17 @@ def test_both_unbounded_samplers_train_on_a_real_capture(tmp_path, fox, sampler)
         d = torch.nn.functional.normalize(torch.randn(64, 3, generator=torch.Generator().manual_seed(1)), dim=-1)
         train_out = model.render_rays(o, d, None, noise=torch.rand(64, model.noise_dims))
         assert float(model.extra_losses(train_out, None)["distortion"].detach()) >= 0
+        # Its renders hand on only the samples within the cull bounds, with their weights unchanged: the picture
+        # is the full march's to the bounds, with fewer samples for whoever renders a student on them.
+        with torch.no_grad():
+            culled = model.render_rays(o, d, None)
+            model.cfg = replace(model.cfg, early_stop_transmittance=0.0, cull_alpha=0.0)
+            full = model.render_rays(o, d, None)
+        assert 0 < culled["num_samples"] < full["num_samples"]
+        assert torch.allclose(culled["rgb"], full["rgb"], atol=2e-3)
+        where = {(int(r), float(t)): float(w) for r, t, w in zip(full["ray_idx"], full["t0"], full["w"])}
+        kept = torch.tensor([where[(int(r), float(t))] for r, t in zip(culled["ray_idx"], culled["t0"])])
+        assert torch.equal(kept, culled["w"].float())
     origins = torch.zeros(4, 3)
     dirs = torch.nn.functional.normalize(torch.randn(4, 3, generator=torch.Generator().manual_seed(0)), dim=-1)
     with torch.no_grad():

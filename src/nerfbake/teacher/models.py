@@ -216,7 +216,14 @@ class HashTeacher(nn.Module):
         sigma, feat = self.field.density_and_features(pts)
         if contracted_training:
             sigma, feat = scale_gradients_by_distance(mid, self.cfg.proposal.grad_scale_distance, sigma, feat)
-        w, _ = packed_weights(sigma, t0, t1, ray_idx, n)
+        w, alpha = packed_weights(sigma, t0, t1, ray_idx, n)
+        if grid.contracted and noise is None:
+            # Rendered samples that the cull bounds make negligible are dropped from the output too: the march
+            # goes on behind walls to unbounded_far (437 samples a ray on the house, 95 kept), and every caller
+            # that renders a student on these intervals (distillation's views, the bake's alive voxels) would
+            # carry them all. The weights of the kept samples are unchanged.
+            keep = self._worth_a_pass(w, alpha)
+            ray_idx, t0, t1, w, feat = ray_idx[keep], t0[keep], t1[keep], w[keep], feat[keep]
         seen = torch.nonzero(w.detach() > self.cfg.color_weight_thresh).squeeze(-1)
         rgb = torch.zeros(w.shape[0], 3, dtype=w.dtype, device=w.device)
         rgb = rgb.index_put((seen,), eval_sh_color(self.field.sh_coeffs(feat[seen]), dirs[ray_idx[seen]]))
@@ -233,10 +240,14 @@ class HashTeacher(nn.Module):
             return ray_idx, t0, t1
         pts = origins[ray_idx] + (0.5 * (t0 + t1))[:, None] * dirs[ray_idx]
         sigma = torch.cat([self.field.density(pts[s: s + (1 << 18)]) for s in range(0, pts.shape[0], 1 << 18)])
-        w, alpha = packed_weights(sigma, t0, t1, ray_idx, n)
-        trans = w / alpha.clamp_min(1e-12)
-        keep = torch.nonzero((trans > self.cfg.early_stop_transmittance) & (alpha >= self.cfg.cull_alpha)).squeeze(-1)
+        keep = self._worth_a_pass(*packed_weights(sigma, t0, t1, ray_idx, n))
         return ray_idx[keep], t0[keep], t1[keep]
+
+    def _worth_a_pass(self, w: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
+        """Indices of the samples before the transmittance falls below ``early_stop_transmittance`` whose alpha
+        reaches ``cull_alpha``."""
+        trans = w / alpha.clamp_min(1e-12)
+        return torch.nonzero((trans > self.cfg.early_stop_transmittance) & (alpha >= self.cfg.cull_alpha)).squeeze(-1)
 
     def _render_proposal(self, origins, dirs, background, noise) -> dict:
         r = origins.shape[0]
