@@ -12,6 +12,7 @@ from nerfbake.errors import RunFolderError
 from nerfbake.fields.hash_sh import HashSHConfig
 from nerfbake.render.quadrature import composite, weights_from_density
 from nerfbake.render.sh import eval_sh_color
+from nerfbake.teacher import models
 from nerfbake.teacher.models import HashTeacher, HashTeacherConfig
 from nerfbake.teacher.protocol import Teacher
 from nerfbake.teacher.run import config_from_dict, load_teacher
@@ -145,7 +146,7 @@ def test_eval_and_render_commands(tiny_scene, tmp_path):
 
 
 @pytest.mark.parametrize("sampler", ["grid", "proposal"])
-def test_both_unbounded_samplers_train_on_a_real_capture(tmp_path, fox, sampler):
+def test_both_unbounded_samplers_train_on_a_real_capture(tmp_path, fox, sampler, monkeypatch):
     """The fox capture (transforms.json, contracted) trains with proposal sampling (the default) or with the
     occupancy grid over contracted space, and renders sane values."""
     cfg = tiny_config(steps=30)
@@ -177,6 +178,11 @@ def test_both_unbounded_samplers_train_on_a_real_capture(tmp_path, fox, sampler)
         where = {(int(r), float(t)): float(w) for r, t, w in zip(full["ray_idx"], full["t0"], full["w"])}
         kept = torch.tensor([where[(int(r), float(t))] for r, t in zip(culled["ray_idx"], culled["t0"])])
         assert torch.equal(kept, culled["w"].float())
+        # ... and evaluates its field a slice of samples at a time (memory), to the same picture.
+        monkeypatch.setattr(models, "FIELD_CHUNK", 7)
+        with torch.no_grad():
+            sliced = model.render_rays(o, d, None)
+        assert torch.allclose(sliced["rgb"], full["rgb"], atol=1e-5) and torch.equal(sliced["t0"], full["t0"])
     origins = torch.zeros(4, 3)
     dirs = torch.nn.functional.normalize(torch.randn(4, 3, generator=torch.Generator().manual_seed(0)), dim=-1)
     with torch.no_grad():
