@@ -216,7 +216,8 @@ class HashTeacher(nn.Module):
             ray_idx, t0, t1 = self._cull(origins, dirs, ray_idx, t0, t1, n)
         mid = 0.5 * (t0 + t1)
         pts = origins[ray_idx] + mid[:, None] * dirs[ray_idx]
-        sigma, feat = self.field.density_and_features(pts) if noise is not None else self._field_in_chunks(pts)
+        field = self.field.density_and_features
+        sigma, feat = field(pts) if noise is not None else self._in_chunks(field, pts)  # renders: in chunks
         if contracted_training:
             sigma, feat = scale_gradients_by_distance(mid, self.cfg.proposal.grad_scale_distance, sigma, feat)
         w, alpha = packed_weights(sigma, t0, t1, ray_idx, n)
@@ -236,14 +237,16 @@ class HashTeacher(nn.Module):
             out["_distortion"] = (spacing(t0), spacing(t1), w, ray_idx, n)
         return out
 
-    def _field_in_chunks(self, pts: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """density_and_features over ``FIELD_CHUNK`` samples at a time: a render's march can hold millions (8192
-        rays through the house's contracted grid: 3.6 M), and the encoding's and MLPs' temporaries of all of them at
-        once were the largest allocation of a distillation's validation view and of the bake."""
+    @staticmethod
+    def _in_chunks(fn, pts: torch.Tensor):
+        """``fn`` (the field's density or density_and_features) over ``FIELD_CHUNK`` samples at a time, the results
+        joined: a march can hold millions (8192 rays through the house's contracted grid: 3.6 M), and the
+        encoding's and MLPs' temporaries of all of them at once were the largest allocation of a distillation's
+        validation view and of the bake."""
         if pts.shape[0] <= FIELD_CHUNK:
-            return self.field.density_and_features(pts)
-        parts = [self.field.density_and_features(pts[s: s + FIELD_CHUNK]) for s in range(0, pts.shape[0], FIELD_CHUNK)]
-        return torch.cat([p[0] for p in parts]), torch.cat([p[1] for p in parts])
+            return fn(pts)
+        parts = [fn(pts[s: s + FIELD_CHUNK]) for s in range(0, pts.shape[0], FIELD_CHUNK)]
+        return tuple(map(torch.cat, zip(*parts))) if isinstance(parts[0], tuple) else torch.cat(parts)
 
     @torch.no_grad()
     def _cull(self, origins, dirs, ray_idx, t0, t1, n):
@@ -251,7 +254,7 @@ class HashTeacher(nn.Module):
         if not ray_idx.numel():
             return ray_idx, t0, t1
         pts = origins[ray_idx] + (0.5 * (t0 + t1))[:, None] * dirs[ray_idx]
-        sigma = torch.cat([self.field.density(pts[s: s + FIELD_CHUNK]) for s in range(0, pts.shape[0], FIELD_CHUNK)])
+        sigma = self._in_chunks(self.field.density, pts)
         keep = self._worth_a_pass(*packed_weights(sigma, t0, t1, ray_idx, n))
         return ray_idx[keep], t0[keep], t1[keep]
 
