@@ -6,6 +6,7 @@ import math
 import json
 import shutil
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,13 +15,15 @@ import torch
 from nerfbake.cli import main
 from nerfbake.kernels.merf_grid import merf_lookup, merf_lookup_reference
 from nerfbake.smerf.assets import AssetError, SceneAssets, load_submodel
-from nerfbake.smerf.bake import (BakeError, atlas_shape, bake_student, max_pool, pack_bits,
+from nerfbake.data.formats import load_dataset
+from nerfbake.smerf.bake import (BakeError, alive_voxels, atlas_shape, bake_student, max_pool, pack_bits,
                                  plane_texels_in_use, quantize_channels)
-from nerfbake.smerf.distill import distill
+from nerfbake.smerf.distill import distill, teacher_background
 from nerfbake.smerf.run import load_student
 from nerfbake.smerf.partition import PartitionError
 from nerfbake.smerf.student import StudentConfig
 from nerfbake.smerf.validate import asset_problems, distance_grid
+from nerfbake.teacher.run import load_teacher
 from tests.helpers import devices, one_and_two_processes, run_nerfbake, tiny_distill_config
 
 
@@ -331,6 +334,27 @@ def test_two_rooms_with_k3_bake_one_valid_folder_per_alive_submodel(rooms_k3):
     scene = SceneAssets.open(assets)
     assert scene.params["num_local_submodels"] == part.num_alive and scene.params["num_submodels"] == 27
     assert scene.mlp["ResampleDense_0/kernel"].shape[0] == part.num_alive
+
+
+def test_one_teacher_pass_bakes_several_submodels_as_separate_passes_do(rooms_k3):
+    """The bake renders each camera's teacher intervals once for all the submodels near it; every submodel's alive
+    voxels must be those of a pass of its own."""
+    student, _, meta = load_student(rooms_k3[0])
+    teacher = load_teacher(Path(meta["teacher"]))[0]
+    ds = load_dataset(meta["data"])
+    cams = [ds.frames[i].camera for i in ds.split("train")]
+    origins = np.stack([c.origin for c in cams])
+    near = {p: student.partition.baking_cameras(origins, p) for p in (0, 1)}
+    bg = teacher_background(ds)
+    calls = []
+    render_rays = teacher.render_rays
+    teacher.render_rays = lambda *a, **kw: calls.append(1) or render_rays(*a, **kw)
+    together = alive_voxels(student, teacher, cams, near, 5e-3, bg)
+    assert len(calls) == int((near[0] | near[1]).sum())  # one teacher render a camera (32 x 32 views: one chunk)
+    for p in near:
+        alone = alive_voxels(student, teacher, cams, {p: near[p]}, 5e-3, bg)[p]
+        assert alone.any() and torch.equal(together[p], alone)
+    assert not torch.equal(together[0], together[1])
 
 
 def test_a_k3_bake_records_the_walk_over_every_test_view_in_order(rooms_k3, tmp_path):

@@ -4,7 +4,8 @@ folder per alive submodel). The steps follow the authors' baker (``shared/refere
 1. alive voxels at the triplane resolution: render the training cameras within 1.5 cell widths of the submodel's
    centre (SMERF appendix C.2; its own cameras alone left a K = 2 bake 6.3 dB under its student) on the teacher's
    intervals with the final alpha-culling threshold; every sample whose weight and whose alpha at the viewer's step
-   size exceed it marks the 8 voxels around it;
+   size exceed it marks the 8 voxels around it (each camera's teacher intervals are rendered once for all the
+   submodels near it);
 2. 3x3x3 median filter (majority of 27);
 3. max-filter pyramid -> occupancy grids at factors 2..128, bit-packed 2x2x2 per byte, and distance grids;
 4. 8^3 macroblocks of the sparse grid that hold an alive voxel, packed into a 3-D atlas of 9^3 blocks (one-voxel
@@ -55,32 +56,44 @@ class BakeError(NerfbakeError):
 
 
 # ---- geometry --------------------------------------------------------------------------------------------------
+ALIVE_BUDGET_BYTES = 1 << 29  # the alive grids (a bool a voxel, one grid a submodel) one pass over the cameras fills
+
+
 @torch.no_grad()
-def alive_voxels(student, teacher: Teacher, cameras, params_idx: int, threshold: float, background, stride: int = 2,
-                 chunk: int = 1 << 13, progress=None) -> torch.Tensor:
-    """(T, T, T) bool over contracted space (viewer axes): voxels next to a sample the submodel really shows."""
+def alive_voxels(student, teacher: Teacher, cameras, submodels: dict[int, np.ndarray], threshold: float, background,
+                 stride: int = 2, chunk: int = 1 << 13, progress=None) -> dict[int, torch.Tensor]:
+    """Per submodel of ``submodels`` ({params index: (N,) bool, the ``cameras`` that bake it}): (T, T, T) bool over
+    contracted space (viewer axes), the voxels next to a sample the submodel really shows.
+
+    The teacher renders each camera once for every submodel that uses it: its intervals do not depend on the
+    submodel, and its march is most of a bake's time (the house's indoor grid teacher: ~5 of a submodel's 6 min)."""
     t = student.cfg.triplane_resolution
-    alive = torch.zeros(t ** 3, dtype=torch.bool)
+    alive = {p: torch.zeros(t ** 3, dtype=torch.bool) for p in submodels}
     corners = torch.tensor([[(c >> 2) & 1, (c >> 1) & 1, c & 1] for c in range(8)])
     dev = student.sparse.device
-    for cam in cameras:
+    bg = torch.tensor(background, device=dev)
+    for i, cam in enumerate(cameras):
+        users = [p for p, near in submodels.items() if near[i]]
+        if not users:
+            continue
         pix = pixel_grid(cam.width, cam.height)[::stride, ::stride].reshape(-1, 2)
         rays = camera_rays(cam, pix)
         for a in range(0, pix.shape[0], chunk):
             o, d = rays["origins"][a:a + chunk].to(dev), rays["directions"][a:a + chunk].to(dev)
-            tout = teacher.render_rays(o, d, torch.tensor(background, device=dev).expand(o.shape[0], 3))
-            pidx = torch.full((o.shape[0],), params_idx, dtype=torch.long, device=dev)
-            out = student.render(o, d, pidx, tout["t0"], tout["t1"], tout["ray_idx"], cull_alpha=threshold)
-            alpha_rt = 1.0 - torch.exp(-out["density"] * student.realtime_step(out["stretch"]))
-            keep = (out["w"] > threshold) & (alpha_rt > threshold)
-            if not keep.any():
-                continue
-            g = ((out["z"][keep].cpu() + 2) / 4 * t - 0.5).floor().long()
-            idx = (g[:, None, :] + corners[None]).clamp(0, t - 1).reshape(-1, 3)
-            alive[(idx[:, 0] * t + idx[:, 1]) * t + idx[:, 2]] = True
+            tout = teacher.render_rays(o, d, bg.expand(o.shape[0], 3))
+            for p in users:
+                pidx = torch.full((o.shape[0],), p, dtype=torch.long, device=dev)
+                out = student.render(o, d, pidx, tout["t0"], tout["t1"], tout["ray_idx"], cull_alpha=threshold)
+                alpha_rt = 1.0 - torch.exp(-out["density"] * student.realtime_step(out["stretch"]))
+                keep = (out["w"] > threshold) & (alpha_rt > threshold)
+                if not keep.any():
+                    continue
+                g = ((out["z"][keep].cpu() + 2) / 4 * t - 0.5).floor().long()
+                idx = (g[:, None, :] + corners[None]).clamp(0, t - 1).reshape(-1, 3)
+                alive[p][(idx[:, 0] * t + idx[:, 1]) * t + idx[:, 2]] = True
         if progress is not None:
             progress()
-    return alive.view(t, t, t)
+    return {p: grid.view(t, t, t) for p, grid in alive.items()}
 
 
 def median_filter_3(grid: torch.Tensor) -> torch.Tensor:
@@ -335,20 +348,26 @@ def bake_student(student_dir: str | Path, out: str | Path, stride: int = 2, over
         dp.barrier()
     stats = {"submodels": {}}
     try:
-        for p in range(dp.rank, part.num_alive, dp.world):
-            cams = [c for c, near in zip(train_cams, part.baking_cameras(origins, p, camera_radius)) if near]
+        mine = list(range(dp.rank, part.num_alive, dp.world))
+        for p in mine:
             if not any(home == p):
                 raise BakeError(f"submodel {p} has no training cameras; the partition and the dataset disagree")
-            with progress_bar(f"bake sm_{part.params_to_sm[p]:03d}: alive voxels", len(cams), unit="view") as adv:
-                alive = alive_voxels(student, teacher, cams, p, threshold, bg, stride, progress=adv)
-            alive = median_filter_3(alive)
-            if not alive.any():
-                raise BakeError(f"submodel {p}: no voxel passes the alpha/weight threshold {threshold}; the student "
-                                "renders nothing from its cameras (distil longer or check the teacher)")
-            frames = test_frames_json([v for v, h in zip(test_views, test_home) if h == p])
-            sm_dir = tmp / f"sm_{part.params_to_sm[p]:03d}"
-            stats["submodels"][sm_dir.name] = write_submodel(sm_dir, student, p, alive, mlp_json, frames)
-            console.print(f"{sm_dir.name}: {stats['submodels'][sm_dir.name]}")
+        per_pass = max(1, ALIVE_BUDGET_BYTES // student.cfg.triplane_resolution ** 3)
+        for first in range(0, len(mine), per_pass):
+            near = {p: part.baking_cameras(origins, p, camera_radius) for p in mine[first:first + per_pass]}
+            names = [f"sm_{part.params_to_sm[p]:03d}" for p in near]
+            label = names[0] if len(names) == 1 else f"{names[0]}..{names[-1]} ({len(names)} submodels)"
+            with progress_bar(f"bake {label}: alive voxels", int(np.any(list(near.values()), axis=0).sum()),
+                              unit="view") as adv:
+                alive_of = alive_voxels(student, teacher, train_cams, near, threshold, bg, stride, progress=adv)
+            for p, name in zip(near, names):
+                alive = median_filter_3(alive_of.pop(p))
+                if not alive.any():
+                    raise BakeError(f"submodel {p}: no voxel passes the alpha/weight threshold {threshold}; the "
+                                    "student renders nothing from its cameras (distil longer or check the teacher)")
+                frames = test_frames_json([v for v, h in zip(test_views, test_home) if h == p])
+                stats["submodels"][name] = write_submodel(tmp / name, student, p, alive, mlp_json, frames)
+                console.print(f"{name}: {stats['submodels'][name]}")
         if dp.world > 1:
             (tmp / f".stats.{dp.rank}.json").write_text(json.dumps(stats["submodels"]))
             dp.barrier()
