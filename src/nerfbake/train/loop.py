@@ -10,6 +10,7 @@ each supplying one optimisation step, its checkpoint state and its validation.
 """
 from __future__ import annotations
 
+import ctypes
 import json
 import os
 import signal
@@ -306,6 +307,21 @@ def finish_run(dp: "DataParallel", ckpt_path: Path, state_fn, config_path: Path,
         console.print(f"stopped at step {step}; checkpoint saved — continue with --resume")
 
 
+def _glibc_malloc_trim():
+    """glibc's ``malloc_trim``, or None off glibc (macOS, musl)."""
+    try:
+        return ctypes.CDLL("libc.so.6").malloc_trim
+    except (OSError, AttributeError):
+        return None
+
+
+# Every step hands the heap's free pages back to the system: a trainer whose tensors change size from step to step
+# (the grid marcher's sample counts) otherwise leaves glibc's heap fragmented and its RSS climbing. The house's K = 2
+# distillation, 150 steps: peak 1.94 GB untrimmed, 1.70 trimmed, 1.39 trimmed with oneDNN's cache capped (see
+# nerfbake/__init__.py).
+HEAP_TRIM = _glibc_malloc_trim()
+
+
 def run_steps(out: Path, dp: "DataParallel", desc: str, total: int, start: int, seed: int, step_fn, state_fn,
               checkpoint: Path, checkpoint_every: int, validate=None, val_every: int = 0, tensorboard: bool = False,
               stop_at: int | None = None, summary=None) -> int:
@@ -327,6 +343,8 @@ def run_steps(out: Path, dp: "DataParallel", desc: str, total: int, start: int, 
                 if interrupt.requested or (stop_at is not None and step >= stop_at):
                     break
                 rays, record = step_fn(step, step_generator(seed, step))
+                if HEAP_TRIM is not None:
+                    HEAP_TRIM(0)
                 step += 1
                 rays_s = rate.add(rays)
                 advance(1)
