@@ -13,9 +13,9 @@ import pytest
 import torch
 
 from nerfbake.cli import main
+from nerfbake.data.formats import load_dataset
 from nerfbake.kernels.merf_grid import merf_lookup, merf_lookup_reference
 from nerfbake.smerf.assets import AssetError, SceneAssets, load_submodel
-from nerfbake.data.formats import load_dataset
 from nerfbake.smerf.bake import (BakeError, alive_voxels, atlas_shape, bake_student, max_pool, pack_bits,
                                  plane_texels_in_use, quantize_channels)
 from nerfbake.smerf.distill import distill, teacher_background
