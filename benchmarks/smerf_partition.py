@@ -43,27 +43,33 @@ from nerfbake.data.formats import load_dataset
 from nerfbake.data.synth import SynthConfig, render_dataset
 from nerfbake.signals import terminate_like_ctrl_c
 from nerfbake.smerf.assets import SceneAssets
-from nerfbake.smerf.run import distill_preset, load_student
+from nerfbake.smerf.run import CHECKPOINT as STUDENT_CHECKPOINT, distill_preset, load_student
 from nerfbake.smerf.evaluate import asset_summary, evaluate_assets, evaluate_student
 from nerfbake.smerf.seams import boundary_cameras, compare_across_boundary
 from nerfbake.smerf.student import StudentConfig
 from nerfbake.teacher.evaluate import evaluate_teacher
 from nerfbake.teacher.presets import preset
-from nerfbake.teacher.run import load_teacher
+from nerfbake.teacher.run import CHECKPOINT as TEACHER_CHECKPOINT, load_teacher
 from nerfbake.teacher.train import train_teacher
 from nerfbake.train.loop import git_revision, run_complete
 
 QUALITY = ("psnr", "ssim", "lpips_vgg", "ms_per_frame")
 
 
-def finished_with(folder: Path, section: str, **values) -> bool:
-    """Whether ``folder`` holds a finished run whose config ``section`` has these values (else it is redone)."""
+def run_state(folder: Path, section: str, checkpoint: str, **values) -> str | None:
+    """What ``folder`` holds of a run whose config ``section`` has these values: "finished", "stopped" (it stopped
+    at its ``checkpoint``, e.g. when a session ended: resuming it gives the run an uninterrupted one would, every step
+    drawing its own randomness) or None (nothing, or a run of other values: it is redone)."""
     path = folder / "config.json"
     if not path.is_file():
-        return False
+        return None
     meta = json.loads(path.read_text())
     cfg = meta.get(section, {})
-    return bool(meta.get("complete")) and all(cfg.get(k) == v for k, v in values.items())
+    if not all(cfg.get(k) == v for k, v in values.items()):
+        return None
+    if meta.get("complete"):
+        return "finished"
+    return "stopped" if (folder / checkpoint).is_file() else None
 
 
 def run_seconds(folder: Path) -> float:
@@ -84,9 +90,9 @@ from nerfbake.smerf.distill import distill
 from nerfbake.smerf.run import config_from_dict
 from nerfbake.train.loop import run_complete
 terminate_like_ctrl_c()
-teacher, student, assets, cfg, need_distill, camera_radius = json.loads(sys.argv[1])
+teacher, student, assets, cfg, need_distill, resume, camera_radius = json.loads(sys.argv[1])
 if need_distill:
-    distill(teacher, student, config_from_dict(cfg))
+    distill(teacher, student, config_from_dict(cfg), resume=resume)
     if not run_complete(student):
         sys.exit(0)  # stopped by a signal at a checkpoint: no bake of a half-trained student (the parent says so)
 bake_student(student, assets, camera_radius=camera_radius)
@@ -123,10 +129,12 @@ def paired_differences(by_k: dict[int, dict[str, float]], teacher: dict[str, flo
     return out
 
 
-def distill_and_bake(teacher_dir: Path, student_dir: Path, assets: Path, cfg, need_distill: bool,
+def distill_and_bake(teacher_dir: Path, student_dir: Path, assets: Path, cfg, need_distill: bool, resume: bool,
                      camera_radius: float) -> int:
-    """Distil (unless finished) and bake in a child process; its peak RSS in bytes (this K's alone)."""
-    arg = json.dumps([str(teacher_dir), str(student_dir), str(assets), asdict(cfg), need_distill, camera_radius])
+    """Distil (unless finished; ``resume``: from its checkpoint) and bake in a child process; its peak RSS in bytes
+    (this K's alone)."""
+    arg = json.dumps([str(teacher_dir), str(student_dir), str(assets), asdict(cfg), need_distill, resume,
+                      camera_radius])
     proc = subprocess.Popen([sys.executable, "-c", CHILD, arg], stdout=subprocess.PIPE, text=True)
     try:
         stdout, _ = proc.communicate()
@@ -172,7 +180,8 @@ def main() -> None:
     ap.add_argument("--teacher-floor", type=float, default=25.0,
                     help="the paired K-against-K figures also count only the test views the teacher renders at this "
                     "PSNR or better")
-    ap.add_argument("--work", help="keep everything here and reuse what is finished (default: a temporary folder)")
+    ap.add_argument("--work", help="keep everything here, reuse what is finished and resume a teacher or "
+                    "student that stopped (default: a temporary folder)")
     args = ap.parse_args()
     args.views = args.views or {"rooms": 80, "house": 280}[args.scene]
     work = Path(args.work or tempfile.mkdtemp(prefix="smerf-partition-"))
@@ -181,10 +190,13 @@ def main() -> None:
     if not (scene / "transforms_test.json").is_file():
         render_dataset(SynthConfig(args.scene, args.size, args.size, views=args.views, spp=args.spp, seed=0), scene)
     teacher_dir = work / "teacher"
-    if not finished_with(teacher_dir, "train", steps=args.teacher_steps):
-        shutil.rmtree(teacher_dir, ignore_errors=True)
-        train_teacher(scene, teacher_dir, replace(preset("hash", "cpu-small"), steps=args.teacher_steps))
-        if not finished_with(teacher_dir, "train", steps=args.teacher_steps):  # stopped by a signal: no figures
+    teacher_state = run_state(teacher_dir, "train", TEACHER_CHECKPOINT, steps=args.teacher_steps)
+    if teacher_state != "finished":
+        if teacher_state is None:
+            shutil.rmtree(teacher_dir, ignore_errors=True)
+        train_teacher(scene, teacher_dir, replace(preset("hash", "cpu-small"), steps=args.teacher_steps),
+                      resume=teacher_state == "stopped")
+        if run_state(teacher_dir, "train", TEACHER_CHECKPOINT, steps=args.teacher_steps) != "finished":  # a signal
             raise interrupted("teacher", teacher_dir)
     teacher_eval = evaluate_teacher(teacher_dir, "test", write_images=False)
     views = {"student": {}, "baked": {}}  # per K: PSNR per test view
@@ -214,16 +226,20 @@ def main() -> None:
         rss_file = work / f"peak_rss_{assets.name}.json"
         # students from before these options have neither key
         newer = {key: True for key in ("warm_start", "steps_per_submodel") if getattr(cfg, key)}
-        need_distill = not finished_with(student_dir, "distill", steps=args.steps, student=asdict(cfg.student),
-                                         consistency_mult=cfg.consistency_mult, seed=cfg.seed, **newer)
+        student_state = run_state(student_dir, "distill", STUDENT_CHECKPOINT, steps=args.steps,
+                                  student=asdict(cfg.student), consistency_mult=cfg.consistency_mult, seed=cfg.seed,
+                                  **newer)
+        need_distill = student_state != "finished"
         baked_with = json.loads((assets / "bake.json").read_text()).get("camera_radius", 0.0) \
             if (assets / "bake.json").is_file() else None  # bakes before the option used a submodel's own cameras
         if need_distill or baked_with != args.camera_radius or not rss_file.is_file():
-            if need_distill:
+            if student_state is None:
                 shutil.rmtree(student_dir, ignore_errors=True)
             shutil.rmtree(assets, ignore_errors=True)
-            rss = distill_and_bake(teacher_dir, student_dir, assets, cfg, need_distill, args.camera_radius)
-            rss_file.write_text(json.dumps({"bytes": rss, "of": "distill + bake" if need_distill else "bake only"}))
+            rss = distill_and_bake(teacher_dir, student_dir, assets, cfg, need_distill, student_state == "stopped",
+                                   args.camera_radius)
+            of = {None: "distill + bake", "stopped": "resumed distill + bake", "finished": "bake only"}[student_state]
+            rss_file.write_text(json.dumps({"bytes": rss, "of": of}))
         s_eval = evaluate_student(student_dir, write_images=False)
         b_eval = evaluate_assets(assets, write_images=False)
         sizes = asset_summary(assets)
@@ -279,4 +295,4 @@ if __name__ == "__main__":
         main()
     except KeyboardInterrupt:
         raise SystemExit("interrupted; a rerun with the same --work reuses every finished teacher, student and bake "
-                         "(an unfinished one starts over)") from None
+                         "and resumes an unfinished teacher or student from its last checkpoint") from None

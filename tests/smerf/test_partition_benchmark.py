@@ -1,5 +1,6 @@
 """benchmarks/smerf_partition.py's paired K-against-K figures (the numbers issue 22's house verdict rests on)."""
 import importlib.util
+import json
 from pathlib import Path
 
 import numpy as np
@@ -40,3 +41,17 @@ def test_paired_differences_with_no_view_over_the_floor(bench):
     assert out["2-1"]["teacher_ok"] == {"mean_db": None, "standard_error_db": None, "views": 0}
     assert out["2-1"]["all"]["standard_error_db"] is None  # one view: no spread
     assert out["2-1"]["all"]["mean_db"] == 1.0
+
+
+def test_a_stopped_run_of_the_same_values_is_resumed_and_any_other_redone(bench, tmp_path):
+    run = tmp_path / "teacher"
+    assert bench.run_state(run, "train", "checkpoint.pt", steps=2000) is None  # nothing there
+    run.mkdir()
+    (run / "config.json").write_text(json.dumps({"train": {"steps": 2000, "lr": 0.01}, "complete": False}))
+    assert bench.run_state(run, "train", "checkpoint.pt", steps=2000) is None  # stopped before its first checkpoint
+    (run / "checkpoint.pt").write_bytes(b"")
+    assert bench.run_state(run, "train", "checkpoint.pt", steps=2000) == "stopped"
+    assert bench.run_state(run, "train", "checkpoint.pt", steps=4000) is None  # other values: redone
+    assert bench.run_state(run, "distill", "checkpoint.pt", steps=2000) is None  # another kind of run
+    (run / "config.json").write_text(json.dumps({"train": {"steps": 2000, "lr": 0.01}, "complete": True}))
+    assert bench.run_state(run, "train", "checkpoint.pt", steps=2000) == "finished"
