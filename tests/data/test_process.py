@@ -92,9 +92,11 @@ def test_output_layout_and_readers_agree(processed):
         np.testing.assert_allclose([ca.fx, ca.fy, ca.cx, ca.cy], [cb.fx, cb.fy, cb.cx, cb.cy], rtol=1e-9)
         assert ca.distortion.get("k1", 0.0) == pytest.approx(cb.distortion.get("k1", 0.0))
         np.testing.assert_allclose(ca.c2w, cb.c2w, atol=1e-9)
-    # Near/far from the sparse points: sparse_pc.ply through transforms.json equals points3D.bin through COLMAP.
+    # Near/far from the sparse points: sparse_pc.ply through transforms.json agrees with points3D.bin through COLMAP.
+    # Not to 1e-4: the PLY holds float32 positions, so a point at an image's edge can be seen through one reader and
+    # not the other, moving the 0.1 percentile by one rank (0.09 % once in CI); a wrong frame or scale is far more.
     assert via_json.bounds is not None and 0 < via_json.bounds[0] < via_json.bounds[1]
-    np.testing.assert_allclose(via_json.bounds, via_colmap.bounds, rtol=1e-4)
+    np.testing.assert_allclose(via_json.bounds, via_colmap.bounds, rtol=1e-2)
     half = load_dataset(processed, format="colmap", downscale=2)  # the COLMAP reader picks images_2/
     assert half.frames[0].image_path.parent.name == "images_2" and half.frames[0].camera.width == SIZE // 2
 
