@@ -56,6 +56,9 @@ VARIANTS = {
     "chunked": _set(proposal_samples=64, final_samples=32, unbounded_mlp_dtype="float32"),
     "now": _set(),
     "32+16": _set(proposal_samples=32, final_samples=16),
+    "64+16": _set(final_samples=16),
+    "64+32+16": _set(refine_samples=32, final_samples=16),  # a second proposal level
+    "64+32+12": _set(refine_samples=32, final_samples=12),
     "grid": _set(unbounded_sampler="grid"),
     "table18": _set(field__log2_table=18),
     "table17": _set(field__log2_table=17),

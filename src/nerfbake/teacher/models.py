@@ -279,7 +279,7 @@ class HashTeacher(nn.Module):
         rgb = rgb.index_put((seen,), eval_sh_color(self.field.sh_coeffs(feat[seen]), dirs[seen // k]))
         out = composite(w, rgb.view(r, k, 3), background, t)
         out.update(ray_idx=torch.arange(r, device=origins.device).repeat_interleave(k), t0=t[:, :-1].reshape(-1), t1=t[:, 1:].reshape(-1),
-                   w=w.reshape(-1), num_samples=r * (k + self.cfg.proposal.proposal_samples))
+                   w=w.reshape(-1), num_samples=r * (k + self.proposal.proposal_samples))
         out["_proposal"] = (s, w, proposal)
         return out
 
