@@ -53,7 +53,7 @@ def instrument(timer: StepTimer, warmup: int) -> None:
     """Wrap what a distillation step calls (module-level names the loop looks up at call time)."""
     d = distill_module
     d.empty_space_loss = timer.wrap("empty_space", d.empty_space_loss)
-    d.clearance_loss = timer.wrap("clearance", d.clearance_loss)
+    d.free_space_loss = timer.wrap("free_space", d.free_space_loss)
     d.patch_dssim = timer.wrap("dssim", d.patch_dssim)
     d.PixelStore.sample_rays = timer.wrap("sample_rays", d.PixelStore.sample_rays)
     Student.render = timer.wrap("student_render", Student.render)

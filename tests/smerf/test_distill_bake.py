@@ -483,24 +483,31 @@ def test_warm_start_gives_every_submodel_the_teachers_density(rooms_teacher):
     assert cleared > 0  # and voxels inside the clearance
 
 
-def test_the_clearance_loss_is_the_opacity_of_the_stretch_in_front_of_the_teachers_near_bound():
-    """A fresh student has density 1 per cube unit everywhere: each ray's first ``radius`` world units hold
-    optical depth radius x scale, whatever points estimate it; the loss is that stretch's opacity, and its gradient
-    lowers the density there (raises nothing)."""
-    from nerfbake.smerf.distill import clearance_loss
+def test_the_free_space_loss_is_the_opacity_of_each_rays_stretch_in_front_of_the_teachers_first_surface():
+    """A fresh student has density 1 per cube unit everywhere: a ray's free stretch of ``depth`` world units holds
+    optical depth depth x scale, whatever points estimate it; the loss is that stretch's mean opacity, and its
+    gradient lowers the density there (raises nothing). The stretch ends short of where the teacher's weight
+    passes FREE_SPACE_WEIGHT, and is at least the teacher's near bound (rays the teacher shows nothing on)."""
+    from nerfbake.smerf.distill import FREE_SPACE_MARGIN, free_depth, free_space_loss
     from nerfbake.smerf.partition import Partition
     from nerfbake.smerf.student import Student
-    from nerfbake.teacher.clearance import CameraClearance
 
     origins = np.array([[-0.5, 0.0, 0.0], [0.5, 0.2, -0.1], [0.0, -0.4, 0.3]])
     partition = Partition.from_cameras(origins, 1)
     student = Student(StudentConfig(sparse_resolution=16, triplane_resolution=32), partition)
-    clearance = CameraClearance(origins, 0.3)
+    # Packed teacher samples: ray 0 reaches weight 0.01 in its third interval (at t = 0.8), ray 1 only in its
+    # first (at 0.1, inside the near bound 0.3), ray 2 never.
+    tout = {"ray_idx": torch.tensor([0, 0, 0, 0, 1, 1, 2, 2]),
+            "t0": torch.tensor([0.4, 0.6, 0.8, 1.0, 0.1, 0.5, 0.3, 0.9]),
+            "w": torch.tensor([0.002, 0.005, 0.5, 0.4, 0.9, 0.1, 0.001, 0.002])}
+    depth = free_depth(tout, 3, radius=0.3)
+    torch.testing.assert_close(depth, torch.tensor([FREE_SPACE_MARGIN * 0.8, 0.3, 0.3]))
     gen = torch.Generator().manual_seed(0)
     d = torch.nn.functional.normalize(torch.randn(3, 3, generator=gen), dim=-1)
     u = torch.rand(3, 5, generator=gen)
-    loss = clearance_loss(student, clearance, torch.tensor(origins).float(), d, torch.zeros(3, dtype=torch.long), u,
-                          quantize=False)
-    assert abs(loss.item() - (1 - math.exp(-0.3 * partition.scale))) < 1e-5
+    loss = free_space_loss(student, torch.tensor(origins).float(), d, torch.zeros(3, dtype=torch.long), depth, u,
+                           quantize=False)
+    expected = (1 - torch.exp(-depth * partition.scale)).mean()
+    assert abs(loss.item() - expected.item()) < 1e-5
     loss.backward()
     assert student.sparse.grad[:, 0].sum() > 0 and (student.sparse.grad[:, 0] >= 0).all()

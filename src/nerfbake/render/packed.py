@@ -71,3 +71,13 @@ def packed_median_depth(w: torch.Tensor, t0: torch.Tensor, t1: torch.Tensor, ray
     mid = torch.where(reached & (w > 0), 0.5 * (t0 + t1), torch.full_like(t0, float("inf")))
     out = torch.full((num_rays,), float("inf"), dtype=t0.dtype, device=t0.device)
     return out.scatter_reduce(0, ray_idx, mid, reduce="amin")
+
+
+def packed_free_depth(w: torch.Tensor, t0: torch.Tensor, ray_idx: torch.Tensor, num_rays: int,
+                      weight: float) -> torch.Tensor:
+    """(R,) distance each ray travels before its accumulated weight first exceeds ``weight`` (the start of the
+    interval where it does): the stretch in front of the first surface. inf for rays that never reach it."""
+    reached = packed_exclusive_cumsum(w, ray_idx) + w.double() > weight
+    start = torch.where(reached, t0, torch.full_like(t0, float("inf")))
+    out = torch.full((num_rays,), float("inf"), dtype=t0.dtype, device=t0.device)
+    return out.scatter_reduce(0, ray_idx, start, reduce="amin")
