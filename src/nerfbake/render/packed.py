@@ -68,9 +68,7 @@ def packed_median_depth(w: torch.Tensor, t0: torch.Tensor, t1: torch.Tensor, ray
     inf for rays with no weight. Unlike the expected depth it is not pulled off a surface by a far background."""
     total = packed_sum(w, ray_idx, num_rays)
     reached = packed_exclusive_cumsum(w, ray_idx) + w.double() >= 0.5 * total.double()[ray_idx]
-    mid = torch.where(reached & (w > 0), 0.5 * (t0 + t1), torch.full_like(t0, float("inf")))
-    out = torch.full((num_rays,), float("inf"), dtype=t0.dtype, device=t0.device)
-    return out.scatter_reduce(0, ray_idx, mid, reduce="amin")
+    return _first_where(reached & (w > 0), 0.5 * (t0 + t1), ray_idx, num_rays)
 
 
 def packed_free_depth(w: torch.Tensor, t0: torch.Tensor, ray_idx: torch.Tensor, num_rays: int,
@@ -78,6 +76,11 @@ def packed_free_depth(w: torch.Tensor, t0: torch.Tensor, ray_idx: torch.Tensor, 
     """(R,) distance each ray travels before its accumulated weight first exceeds ``weight`` (the start of the
     interval where it does): the stretch in front of the first surface. inf for rays that never reach it."""
     reached = packed_exclusive_cumsum(w, ray_idx) + w.double() > weight
-    start = torch.where(reached, t0, torch.full_like(t0, float("inf")))
-    out = torch.full((num_rays,), float("inf"), dtype=t0.dtype, device=t0.device)
-    return out.scatter_reduce(0, ray_idx, start, reduce="amin")
+    return _first_where(reached, t0, ray_idx, num_rays)
+
+
+def _first_where(cond: torch.Tensor, t: torch.Tensor, ray_idx: torch.Tensor, num_rays: int) -> torch.Tensor:
+    """(R,) the smallest ``t`` (S,) of each ray's samples where ``cond`` holds (its first, for ascending t); inf
+    where it holds for none."""
+    out = torch.full((num_rays,), float("inf"), dtype=t.dtype, device=t.device)
+    return out.scatter_reduce(0, ray_idx, torch.where(cond, t, torch.full_like(t, float("inf"))), reduce="amin")
