@@ -62,6 +62,11 @@ VARIANTS = {
     "grid": _set(unbounded_sampler="grid"),
     "table18": _set(field__log2_table=18),
     "table17": _set(field__log2_table=17),
+    # Narrower final field on top of 64 + 16: one hidden colour layer (15 -> 64 -> 48 instead of two), or 12 hash
+    # levels instead of 16, or 48 proposal samples.
+    "64+16c1": _set(final_samples=16, field__color_layers=1),
+    "64+16l12": _set(final_samples=16, field__levels=12),
+    "48+16c1": _set(proposal_samples=48, final_samples=16, field__color_layers=1),
 }
 
 
